@@ -1,0 +1,19 @@
+"""kneegui engine: read a human-body FE model, re-pose its knee, check and smooth the mesh.
+
+The engine uses numpy and scipy only; it never imports Qt, VTK or pyvista (the GUI lives in ``app``).
+"""
+
+from kneegui.errors import DeckError, GeometryError, KneeguiError, SetupError
+from kneegui.model import ELEMENT_TYPES, ElementBlock, Model, Part
+
+__all__ = [
+    "ELEMENT_TYPES",
+    "DeckError",
+    "ElementBlock",
+    "GeometryError",
+    "KneeguiError",
+    "Model",
+    "Part",
+    "SetupError",
+]
+__version__ = "0.1.0"
