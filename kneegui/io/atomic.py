@@ -1,0 +1,56 @@
+"""Crash-safe file writing: temp file in the target folder, flush + fsync, then rename.
+
+A reader of the target path sees either the old file or the complete new one, never a half-written
+file, even if the process is killed mid-write.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+
+def _write_temp(target: Path, data: bytes) -> Path:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return Path(tmp)
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    return next(iter(atomic_write_many({Path(path): data})))
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically; returns the path."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_many(files: Mapping[Path, bytes]) -> list[Path]:
+    """Write several files so that none is replaced unless all were written completely.
+
+    Every file is first written to a temp file beside its target; only when all temp files are
+    on disk are they renamed into place. On any failure the temp files are removed and no
+    target is touched.
+    """
+    temps: list[tuple[Path, Path]] = []
+    try:
+        for target, data in files.items():
+            temps.append((_write_temp(Path(target), data), Path(target)))
+    except BaseException:
+        for tmp, _ in temps:
+            tmp.unlink(missing_ok=True)
+        raise
+    for tmp, target in temps:
+        os.replace(tmp, target)
+    return [target for _, target in temps]

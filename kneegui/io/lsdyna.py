@@ -1,0 +1,6 @@
+"""LS-DYNA keyword decks: :func:`read_deck`, lossless :func:`write_deck`, fresh :func:`write_model`."""
+
+from kneegui.io.lsdyna_read import DeckFile, DeckSource, read_deck
+from kneegui.io.lsdyna_write import write_deck, write_model
+
+__all__ = ["DeckFile", "DeckSource", "read_deck", "write_deck", "write_model"]
