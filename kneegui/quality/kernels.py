@@ -1,0 +1,358 @@
+"""Vectorised quality kernels, one per element type (QUALITY.md is the specification).
+
+Every kernel takes the element's node positions as a list of ``(3, m)`` arrays (one per node,
+component-major so that each arithmetic step is one contiguous numpy operation over ``m``
+elements) and returns a dict of ``(m,)`` arrays:
+
+``jacobian_corner``, ``jacobian_gauss``
+    Ratio of determinants ``min_p d_p / max_p d_p`` over the sample points (corners or Gauss
+    points), ``-1`` when ``max_p d_p <= 0``. Linear simplices (tet, tri) have a constant
+    determinant: ``1`` if positive, else ``-1``.
+``aspect``
+    Worst face's longest / shortest edge (``inf`` for a zero-length edge).
+``warpage``
+    Worst quad face's fold angle in degrees (0-180); triangles score 0.
+``skew``
+    Worst face's skew in degrees (0-90).
+``volume``
+    Signed volume (solids, model units cubed) or area (shells, always >= 0).
+
+The kernels compare cosines / squared lengths across faces and take a single ``arccos`` /
+``arcsin`` / ``sqrt`` of the worst one per element; that is what makes a million hexes cheap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+Vec = NDArray[np.float64]  # (3, m) vectors, component-major
+Arr = NDArray[np.float64]  # (m,)
+
+#: Gauss abscissa of the 2-point rule.
+GAUSS_2 = 1.0 / np.sqrt(3.0)
+
+
+# ---------------------------------------------------------------------- vector helpers
+def _cross(a: Vec, b: Vec) -> Vec:
+    out = np.empty_like(a)
+    np.subtract(a[1] * b[2], a[2] * b[1], out=out[0])
+    np.subtract(a[2] * b[0], a[0] * b[2], out=out[1])
+    np.subtract(a[0] * b[1], a[1] * b[0], out=out[2])
+    return out
+
+
+def _dot(a: Vec, b: Vec) -> Arr:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _sq(a: Vec) -> Arr:
+    return a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
+
+
+def _triple(a: Vec, b: Vec, c: Vec) -> Arr:
+    """``(a x b) . c``, the determinant of the matrix with columns a, b, c."""
+    return (
+        c[0] * (a[1] * b[2] - a[2] * b[1])
+        + c[1] * (a[2] * b[0] - a[0] * b[2])
+        + c[2] * (a[0] * b[1] - a[1] * b[0])
+    )
+
+
+def _ratio_of_determinants(dets: Sequence[Arr]) -> Arr:
+    """``min/max`` of the sample determinants, ``-1`` where the largest is not positive."""
+    lo = dets[0].copy()
+    hi = dets[0].copy()
+    for d in dets[1:]:
+        np.minimum(lo, d, out=lo)
+        np.maximum(hi, d, out=hi)
+    positive = hi > 0.0
+    out = np.full_like(lo, -1.0)
+    np.divide(lo, hi, out=out, where=positive)
+    return out
+
+
+def _cos_between(a: Vec, b: Vec) -> Arr:
+    """Cosine of the angle between a and b; 1 where either is zero (no angle defined)."""
+    den = np.sqrt(_sq(a) * _sq(b))
+    out = np.ones_like(den)
+    np.divide(_dot(a, b), den, out=out, where=den > 0.0)
+    return out
+
+
+# ---------------------------------------------------------------------- face accumulators
+class _FaceAccumulator:
+    """Running worst-face values: squared aspect, min warp cosine, max skew sine."""
+
+    def __init__(self, m: int):
+        self.aspect_sq = np.ones(m)
+        self.warp_cos = np.ones(m)
+        self.skew_sin = np.zeros(m)
+
+    def add_quad(self, p: Sequence[Vec], edge_sq: Sequence[Arr]) -> None:
+        """Quad face p0..p3 with squared edge lengths (01, 12, 23, 30)."""
+        hi = np.maximum(np.maximum(edge_sq[0], edge_sq[1]), np.maximum(edge_sq[2], edge_sq[3]))
+        lo = np.minimum(np.minimum(edge_sq[0], edge_sq[1]), np.minimum(edge_sq[2], edge_sq[3]))
+        self._add_aspect(hi, lo)
+        d01 = p[1] - p[0]
+        d02 = p[2] - p[0]
+        d03 = p[3] - p[0]
+        d13 = p[3] - p[1]
+        area2 = _cross(d02, d13)  # n012 + n023 == n013 + n123 == (p2 - p0) x (p3 - p1)
+        n012 = _cross(d01, d02)
+        n013 = _cross(d01, d03)
+        c1 = _cos_between(n012, area2 - n012)
+        c2 = _cos_between(n013, area2 - n013)
+        np.minimum(self.warp_cos, np.minimum(c1, c2), out=self.warp_cos)
+        # skew: principal axes (mid-side to mid-side) X1 = m12 - m30, X2 = m23 - m01 (x2)
+        x1 = (p[1] - p[0]) + (p[2] - p[3])
+        x2 = (p[2] - p[1]) + (p[3] - p[0])
+        np.maximum(self.skew_sin, np.abs(_cos_between(x1, x2)), out=self.skew_sin)
+
+    def add_tri(self, edge_sq: Sequence[Arr]) -> None:
+        """Triangle face with squared edge lengths (01, 12, 20)."""
+        a, b, c = edge_sq  # a = |p1-p0|^2, b = |p2-p1|^2, c = |p0-p2|^2
+        hi = np.maximum(np.maximum(a, b), c)
+        lo = np.minimum(np.minimum(a, b), c)
+        self._add_aspect(hi, lo)
+        # At vertex i: median m_i to the opposite mid-side versus the line joining the other two
+        # mid-sides (parallel to the opposite edge e_i). With squared side lengths:
+        # m_i . e_i = (difference of the adjacent sides' squares) / 2,
+        # |m_i|^2 = (2 (adjacent squares) - opposite square) / 4.
+        best = np.zeros_like(a)
+        for opp, s1, s2 in ((b, a, c), (c, a, b), (a, b, c)):
+            num = np.abs(s1 - s2)
+            den = np.sqrt(np.maximum(2.0 * (s1 + s2) - opp, 0.0) * opp)
+            cos = np.zeros_like(num)
+            np.divide(num, den, out=cos, where=den > 0.0)
+            np.maximum(best, cos, out=best)
+        np.maximum(self.skew_sin, np.minimum(best, 1.0), out=self.skew_sin)
+
+    def _add_aspect(self, hi: Arr, lo: Arr) -> None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = hi / lo
+        ratio[lo <= 0.0] = np.inf
+        np.maximum(self.aspect_sq, ratio, out=self.aspect_sq)
+
+    def finish(self) -> dict[str, Arr]:
+        return {
+            "aspect": np.sqrt(self.aspect_sq),
+            "warpage": np.degrees(np.arccos(np.clip(self.warp_cos, -1.0, 1.0))),
+            "skew": np.degrees(np.arcsin(np.clip(self.skew_sin, 0.0, 1.0))),
+        }
+
+
+# ---------------------------------------------------------------------- solids
+#: Hex faces as node cycles.
+HEX_FACES = ((0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (3, 2, 6, 7), (0, 3, 7, 4))
+
+
+def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of trilinear hexahedra (nodes 0-3 bottom, 4-7 top)."""
+    m = p[0].shape[1]
+    # edges along the parametric directions xi (0->1), eta (0->3), zeta (0->4)
+    ex = (p[1] - p[0], p[2] - p[3], p[5] - p[4], p[6] - p[7])  # at (eta, zeta) = --, +-, -+, ++
+    ey = (p[3] - p[0], p[2] - p[1], p[7] - p[4], p[6] - p[5])  # at (xi, zeta) = --, +-, -+, ++
+    ez = (p[4] - p[0], p[5] - p[1], p[7] - p[3], p[6] - p[2])  # at (xi, eta) = --, +-, -+, ++
+    # corner k at (xi, eta, zeta) signs: use the edges through it
+    corner_edges = (
+        (0, 0, 0),  # node 0 (-,-,-): ex[--], ey[--], ez[--]
+        (0, 1, 1),  # node 1 (+,-,-)
+        (1, 1, 3),  # node 2 (+,+,-)
+        (1, 0, 2),  # node 3 (-,+,-)
+        (2, 2, 0),  # node 4 (-,-,+)
+        (2, 3, 1),  # node 5 (+,-,+)
+        (3, 3, 3),  # node 6 (+,+,+)
+        (3, 2, 2),  # node 7 (-,+,+)
+    )
+    corner = [_triple(ex[i], ey[j], ez[k]) for i, j, k in corner_edges]
+    # Gauss points: bilinear interpolation of each direction's four edges at +-g
+    g = GAUSS_2
+
+    def interp(e: tuple[Vec, Vec, Vec, Vec]) -> list[Vec]:
+        # e[0..3] at (s, t) = (-,-), (+,-), (-,+), (+,+); returns values at (s, t) = (-g|+g)^2
+        out = []
+        for t in (-g, g):
+            lo = 0.5 * ((1 - t) * e[0] + (1 + t) * e[2])  # s = -1 line, at t
+            hi = 0.5 * ((1 - t) * e[1] + (1 + t) * e[3])  # s = +1 line, at t
+            mid = 0.5 * (lo + hi)
+            half = (0.5 * g) * (hi - lo)
+            out.append(mid - half)  # s = -g
+            out.append(mid + half)  # s = +g
+        return out  # order (s, t): (-,-), (+,-), (-,+), (+,+)
+
+    gx = interp(ex)  # indexed by (eta, zeta)
+    gy = interp(ey)  # indexed by (xi, zeta)
+    gz = interp(ez)  # indexed by (xi, eta)
+    gauss = []
+    for zi in (0, 1):
+        for yi in (0, 1):
+            for xi in (0, 1):
+                gauss.append(_triple(gx[yi + 2 * zi], gy[xi + 2 * zi], gz[xi + 2 * yi]))
+    volume = sum(gauss[1:], gauss[0]) * 0.125
+    # faces (any orientation; metrics are unsigned)
+    sq = {}
+    for edges, pairs in (
+        (ex, ((0, 1), (3, 2), (4, 5), (7, 6))),
+        (ey, ((0, 3), (1, 2), (4, 7), (5, 6))),
+        (ez, ((0, 4), (1, 5), (3, 7), (2, 6))),
+    ):
+        for vec, (i, j) in zip(edges, pairs, strict=True):
+            sq[frozenset((i, j))] = _sq(vec)
+    acc = _FaceAccumulator(m)
+    for face in HEX_FACES:
+        edges = [sq[frozenset((face[i], face[(i + 1) % 4]))] for i in range(4)]
+        acc.add_quad([p[i] for i in face], edges)
+    out = acc.finish()
+    out["jacobian_corner"] = _ratio_of_determinants(corner)
+    out["jacobian_gauss"] = _ratio_of_determinants(gauss)
+    out["volume"] = volume
+    return out
+
+
+#: 3-point triangle rule (r, s), weight 1/6 each.
+_TRI_POINTS = ((1.0 / 6.0, 1.0 / 6.0), (2.0 / 3.0, 1.0 / 6.0), (1.0 / 6.0, 2.0 / 3.0))
+
+
+def wedge6_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of linear wedges (triangle 0,1,2 below 3,4,5; edges i -> i+3)."""
+    m = p[0].shape[1]
+    b1, b2 = p[1] - p[0], p[2] - p[0]
+    t1, t2 = p[4] - p[3], p[5] - p[3]
+    v = (p[3] - p[0], p[4] - p[1], p[5] - p[2])
+    nb = _cross(b1, b2)
+    nt = _cross(t1, t2)
+    corner = [_dot(nb, vi) for vi in v] + [_dot(nt, vi) for vi in v]
+    gauss = []
+    volume = np.zeros(m)
+    for z in (-GAUSS_2, GAUSS_2):
+        wb, wt = 0.5 * (1 - z), 0.5 * (1 + z)
+        n = _cross(wb * b1 + wt * t1, wb * b2 + wt * t2)
+        for r, s in _TRI_POINTS:
+            xz = 0.5 * ((1 - r - s) * v[0] + r * v[1] + s * v[2])
+            d = _dot(n, xz)
+            gauss.append(d)
+            volume += d / 6.0
+    sq01, sq12, sq20 = _sq(b1), _sq(p[2] - p[1]), _sq(b2)
+    sq34, sq45, sq53 = _sq(t1), _sq(p[5] - p[4]), _sq(t2)
+    sq03, sq14, sq25 = _sq(v[0]), _sq(v[1]), _sq(v[2])
+    acc = _FaceAccumulator(m)
+    acc.add_tri((sq01, sq12, sq20))
+    acc.add_tri((sq34, sq45, sq53))
+    acc.add_quad([p[0], p[1], p[4], p[3]], (sq01, sq14, sq34, sq03))
+    acc.add_quad([p[1], p[2], p[5], p[4]], (sq12, sq25, sq45, sq14))
+    acc.add_quad([p[2], p[0], p[3], p[5]], (sq20, sq03, sq53, sq25))
+    out = acc.finish()
+    out["jacobian_corner"] = _ratio_of_determinants(corner)
+    out["jacobian_gauss"] = _ratio_of_determinants(gauss)
+    out["volume"] = volume
+    return out
+
+
+def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of pyramids (quad base 0-3 counter-clockwise seen from apex 4).
+
+    The collapsed-hex map of a pyramid is singular at the apex, so both Jacobians are the ratio
+    of the four base-corner determinants ``det(p[i+1]-p[i], p[i-1]-p[i], p[4]-p[i])`` (1 for a
+    right pyramid on a rectangle or parallelogram). Volume: ``(p2-p0)x(p3-p1) . (apex - base
+    centroid) / 6``, exact for a planar base.
+    """
+    m = p[0].shape[1]
+    base = p[:4]
+    e = [base[(i + 1) % 4] - base[i] for i in range(4)]  # e[i] = edge i -> i+1
+    corner = [_triple(e[i], -e[(i + 3) % 4], p[4] - base[i]) for i in range(4)]
+    jac = _ratio_of_determinants(corner)
+    centroid = 0.25 * (base[0] + base[1] + base[2] + base[3])
+    volume = _dot(_cross(base[2] - base[0], base[3] - base[1]), p[4] - centroid) / 6.0
+    sq_base = [_sq(ei) for ei in e]
+    sq_side = [_sq(p[4] - base[i]) for i in range(4)]
+    acc = _FaceAccumulator(m)
+    acc.add_quad(list(base), sq_base)
+    for i in range(4):
+        acc.add_tri((sq_base[i], sq_side[(i + 1) % 4], sq_side[i]))
+    out = acc.finish()
+    out["jacobian_corner"] = jac
+    out["jacobian_gauss"] = jac.copy()
+    out["volume"] = volume
+    return out
+
+
+def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of linear tetrahedra (triangle 0,1,2 counter-clockwise seen from apex 3).
+
+    The determinant is constant: both Jacobians are 1 for a positive volume, else -1.
+    """
+    m = p[0].shape[1]
+    e01, e02, e03 = p[1] - p[0], p[2] - p[0], p[3] - p[0]
+    volume = _triple(e01, e02, e03) / 6.0
+    jac = np.where(volume > 0.0, 1.0, -1.0)
+    s01, s02, s03 = _sq(e01), _sq(e02), _sq(e03)
+    s12, s13, s23 = _sq(p[2] - p[1]), _sq(p[3] - p[1]), _sq(p[3] - p[2])
+    acc = _FaceAccumulator(m)
+    acc.add_tri((s01, s12, s02))
+    acc.add_tri((s01, s13, s03))
+    acc.add_tri((s12, s23, s13))
+    acc.add_tri((s02, s23, s03))
+    out = acc.finish()
+    out["jacobian_corner"] = jac
+    out["jacobian_gauss"] = jac.copy()
+    out["volume"] = volume
+    return out
+
+
+# ---------------------------------------------------------------------- shells
+def quad4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of bilinear quad shells.
+
+    Determinants ``d = (x_xi x x_eta) . n`` with ``n = (p2 - p0) x (p3 - p1)`` (the element's
+    mean normal; its length does not change the ratio). Area = ``|n| / 2``.
+    """
+    m = p[0].shape[1]
+    n = _cross(p[2] - p[0], p[3] - p[1])
+    e = [p[(i + 1) % 4] - p[i] for i in range(4)]  # e[i] = edge i -> i+1
+    corner = [_dot(_cross(e[i], -e[(i + 3) % 4]), n) for i in range(4)]
+    # x_xi along edges 0->1 (eta=-1) and 3->2 (eta=+1); x_eta along 0->3 (xi=-1), 1->2 (xi=+1)
+    ex_lo, ex_hi = e[0], -e[2]
+    ey_lo, ey_hi = -e[3], e[1]
+    gauss = []
+    for eta in (-GAUSS_2, GAUSS_2):
+        x_xi = 0.5 * ((1 - eta) * ex_lo + (1 + eta) * ex_hi)
+        for xi in (-GAUSS_2, GAUSS_2):
+            x_eta = 0.5 * ((1 - xi) * ey_lo + (1 + xi) * ey_hi)
+            gauss.append(_dot(_cross(x_xi, x_eta), n))
+    acc = _FaceAccumulator(m)
+    acc.add_quad(list(p), [_sq(ei) for ei in e])
+    out = acc.finish()
+    out["jacobian_corner"] = _ratio_of_determinants(corner)
+    out["jacobian_gauss"] = _ratio_of_determinants(gauss)
+    out["volume"] = 0.5 * np.sqrt(_sq(n))
+    return out
+
+
+def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of linear triangle shells: Jacobian 1 (or -1 for zero area), area >= 0."""
+    m = p[0].shape[1]
+    e01, e02 = p[1] - p[0], p[2] - p[0]
+    area = 0.5 * np.sqrt(_sq(_cross(e01, e02)))
+    jac = np.where(area > 0.0, 1.0, -1.0)
+    acc = _FaceAccumulator(m)
+    acc.add_tri((_sq(e01), _sq(p[2] - p[1]), _sq(e02)))
+    out = acc.finish()
+    out["jacobian_corner"] = jac
+    out["jacobian_gauss"] = jac.copy()
+    out["volume"] = area
+    return out
+
+
+#: Kernel and the node columns it reads, per element type. tet10 is measured on its corners.
+KERNELS: dict[str, tuple[Callable[[Sequence[Vec]], dict[str, Arr]], tuple[int, ...]]] = {
+    "hex8": (hex8_quality, tuple(range(8))),
+    "wedge6": (wedge6_quality, tuple(range(6))),
+    "pyramid5": (pyramid5_quality, tuple(range(5))),
+    "tet4": (tet4_quality, tuple(range(4))),
+    "tet10": (tet4_quality, tuple(range(4))),
+    "quad4": (quad4_quality, tuple(range(4))),
+    "tri3": (tri3_quality, tuple(range(3))),
+}

@@ -1,0 +1,234 @@
+"""Per-element quality of every solid and shell block: Jacobians, aspect, warpage, skew, volume.
+
+``compute_quality(coords, blocks)`` measures a whole model; ``QualityEvaluator(blocks)``
+precomputes what does not depend on the coordinates so that ``evaluate(coords, rows=...)`` is
+cheap enough to call on every slider step for the elements that moved. Definitions: QUALITY.md
+(and :mod:`kneegui.quality.kernels`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from kneegui.model import ElementBlock
+from kneegui.quality.kernels import KERNELS
+
+#: Metric arrays every :class:`ElementQuality` holds, in display order.
+METRICS: tuple[str, ...] = (
+    "jacobian_corner",
+    "jacobian_gauss",
+    "aspect",
+    "warpage",
+    "skew",
+    "volume",
+)
+#: Element types that have quality metrics (lines and springs have none).
+MEASURED_TYPES: tuple[str, ...] = tuple(KERNELS)
+
+_CHUNK = 8192  # elements per kernel call: keeps the temporaries in cache
+_PARALLEL_MIN = 4 * _CHUNK
+
+
+@dataclass(frozen=True)
+class ElementQuality:
+    """Metrics of the elements of one type.
+
+    Attributes
+    ----------
+    etype : str
+        Element type.
+    rows : (m,) ndarray of int64
+        Rows of the block these values belong to (``arange(len(block))`` for a full evaluation).
+    jacobian_corner, jacobian_gauss : (m,) ndarray of float
+        Ratio of determinants at the corners / Gauss points; ``<= 0`` is invalid.
+    aspect : (m,) ndarray of float
+        Worst face's longest / shortest edge (>= 1, ``inf`` for a zero-length edge).
+    warpage, skew : (m,) ndarray of float
+        Worst face's values, degrees.
+    volume : (m,) ndarray of float
+        Signed volume of solids; area (>= 0) of shells. Model units cubed / squared.
+    inverted : (m,) ndarray of bool
+        ``jacobian_corner <= 0``: inverted, partly inverted or collapsed.
+    """
+
+    etype: str
+    rows: NDArray[np.int64]
+    jacobian_corner: NDArray[np.float64]
+    jacobian_gauss: NDArray[np.float64]
+    aspect: NDArray[np.float64]
+    warpage: NDArray[np.float64]
+    skew: NDArray[np.float64]
+    volume: NDArray[np.float64]
+    inverted: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def metric(self, name: str) -> NDArray:
+        """One metric array by name (``"jacobian"`` is the corner Jacobian)."""
+        return getattr(self, "jacobian_corner" if name == "jacobian" else name)
+
+
+@dataclass(frozen=True)
+class QualityResult:
+    """Quality of a model's solid and shell elements, one :class:`ElementQuality` per type."""
+
+    by_type: Mapping[str, ElementQuality] = field(default_factory=dict)
+
+    def __getitem__(self, etype: str) -> ElementQuality:
+        return self.by_type[etype]
+
+    def __contains__(self, etype: object) -> bool:
+        return etype in self.by_type
+
+    def __iter__(self):
+        return iter(self.by_type)
+
+    @property
+    def n_elements(self) -> int:
+        """Number of measured elements."""
+        return sum(len(q) for q in self.by_type.values())
+
+    @property
+    def n_inverted(self) -> int:
+        """Number of elements with ``jacobian_corner <= 0``."""
+        return int(sum(np.count_nonzero(q.inverted) for q in self.by_type.values()))
+
+    def worst_jacobian(self, kind: str = "corner") -> float:
+        """Smallest Jacobian ratio over every element (``nan`` if there are none)."""
+        name = f"jacobian_{kind}"
+        values = [q.metric(name) for q in self.by_type.values() if len(q)]
+        return float(min(v.min() for v in values)) if values else float("nan")
+
+    def concatenated(self, name: str) -> NDArray:
+        """One metric over every type, concatenated in the order of ``by_type``."""
+        arrays = [q.metric(name) for q in self.by_type.values()]
+        return np.concatenate(arrays) if arrays else np.zeros(0)
+
+
+class QualityEvaluator:
+    """Evaluate element quality of fixed blocks for changing coordinates.
+
+    Parameters
+    ----------
+    blocks : mapping of str to ElementBlock
+        The model's blocks; types without metrics (beams, springs) are ignored.
+    threads : int, optional
+        Worker threads for large evaluations (default: the number of CPUs, at most 8).
+
+    Examples
+    --------
+    >>> ev = QualityEvaluator(model.blocks)                       # doctest: +SKIP
+    >>> q = ev.evaluate(posed_coords, rows={"hex8": moved_rows})  # doctest: +SKIP
+    """
+
+    def __init__(self, blocks: Mapping[str, ElementBlock], threads: int | None = None):
+        self._conn: dict[str, NDArray[np.int64]] = {}
+        for etype, block in blocks.items():
+            if etype in KERNELS and len(block):
+                columns = KERNELS[etype][1]
+                self._conn[etype] = np.ascontiguousarray(block.conn[:, list(columns)])
+        self._threads = threads or min(os.cpu_count() or 1, 8)
+
+    @property
+    def etypes(self) -> tuple[str, ...]:
+        """The measured element types present."""
+        return tuple(self._conn)
+
+    def evaluate(
+        self,
+        coords: ArrayLike,
+        rows: Mapping[str, ArrayLike] | None = None,
+    ) -> QualityResult:
+        """Measure the elements at the given node coordinates.
+
+        Parameters
+        ----------
+        coords : (N, 3) array_like of float
+            Node coordinates (not modified).
+        rows : mapping of str to array_like of int, optional
+            Evaluate only these rows of each block (types not named are skipped). Default:
+            every element.
+
+        Returns
+        -------
+        QualityResult
+        """
+        xyz_t = np.ascontiguousarray(np.asarray(coords, dtype=np.float64).T)
+        out: dict[str, ElementQuality] = {}
+        for etype, conn in self._conn.items():
+            if rows is None:
+                sel = np.arange(len(conn), dtype=np.int64)
+                sub = conn
+            elif etype in rows:
+                sel = np.asarray(rows[etype], dtype=np.int64).reshape(-1)
+                sub = conn[sel]
+            else:
+                continue
+            values = self._run(etype, xyz_t, sub)
+            out[etype] = ElementQuality(
+                etype=etype,
+                rows=sel,
+                inverted=values["jacobian_corner"] <= 0.0,
+                **{k: values[k] for k in METRICS},
+            )
+        return QualityResult(out)
+
+    def _run(
+        self, etype: str, xyz_t: NDArray[np.float64], conn: NDArray[np.int64]
+    ) -> dict[str, NDArray[np.float64]]:
+        kernel = KERNELS[etype][0]
+        m = len(conn)
+        result = {k: np.empty(m) for k in METRICS}
+
+        def work(start: int) -> None:
+            block = conn[start : start + _CHUNK]
+            pts = [xyz_t[:, block[:, k]] for k in range(block.shape[1])]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                values = kernel(pts)
+            for k in METRICS:
+                result[k][start : start + len(block)] = values[k]
+
+        starts = range(0, m, _CHUNK)
+        if m >= _PARALLEL_MIN and self._threads > 1:
+            with ThreadPoolExecutor(self._threads) as pool:
+                list(pool.map(work, starts))
+        else:
+            for s in starts:
+                work(s)
+        return result
+
+
+def compute_quality(
+    coords: ArrayLike,
+    blocks: Mapping[str, ElementBlock],
+    rows: Mapping[str, ArrayLike] | None = None,
+) -> QualityResult:
+    """Quality metrics of every solid and shell element.
+
+    Parameters
+    ----------
+    coords : (N, 3) array_like of float
+        Node coordinates.
+    blocks : mapping of str to ElementBlock
+        Element blocks (``Model.blocks``); beams and springs are skipped.
+    rows : mapping of str to array_like of int, optional
+        Only these rows per type (see :meth:`QualityEvaluator.evaluate`).
+
+    Returns
+    -------
+    QualityResult
+        Per element type, arrays aligned with the block's rows (or with ``rows``).
+    """
+    return QualityEvaluator(blocks).evaluate(coords, rows)
+
+
+def element_quality(model, rows: Mapping[str, ArrayLike] | None = None) -> QualityResult:
+    """Quality metrics of a :class:`kneegui.model.Model` (``compute_quality`` on its arrays)."""
+    return compute_quality(model.coords, model.blocks, rows)
