@@ -1,6 +1,7 @@
 """kneegui engine: read a human-body FE model, re-pose its knee, check and smooth the mesh.
 
-The engine uses numpy and scipy only; it never imports Qt, VTK or pyvista (the GUI lives in ``app``).
+The engine uses numpy and scipy only; it never imports Qt, VTK or pyvista (the GUI lives in
+``app``).
 """
 
 from kneegui.errors import DeckError, GeometryError, KneeguiError, SetupError

@@ -323,8 +323,18 @@ def _wedge_patterns() -> list[tuple[tuple[int, int], tuple[int, int], tuple[int,
             assert opposite[fa] == fb
             # map each node of face fa to its neighbour on face fb along the connecting edges
             edges = {
-                (0, 4), (1, 5), (2, 6), (3, 7), (0, 1), (1, 2), (2, 3), (3, 0),
-                (4, 5), (5, 6), (6, 7), (7, 4),
+                (0, 4),
+                (1, 5),
+                (2, 6),
+                (3, 7),
+                (0, 1),
+                (1, 2),
+                (2, 3),
+                (3, 0),
+                (4, 5),
+                (5, 6),
+                (6, 7),
+                (7, 4),
             }
             edges |= {(b, a) for a, b in edges}
             fa_nodes, fb_nodes = faces[fa], faces[fb]

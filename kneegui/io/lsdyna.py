@@ -1,4 +1,4 @@
-"""LS-DYNA keyword decks: :func:`read_deck`, lossless :func:`write_deck`, fresh :func:`write_model`."""
+"""LS-DYNA keyword decks: read_deck, lossless write_deck, fresh write_model."""
 
 from kneegui.io.lsdyna_read import DeckFile, DeckSource, read_deck
 from kneegui.io.lsdyna_write import write_deck, write_model

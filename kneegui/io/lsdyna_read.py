@@ -1,12 +1,13 @@
 """Read LS-DYNA keyword decks into a :class:`kneegui.model.Model`, vectorised.
 
-What is parsed: ``*KEYWORD`` (``LONG=Y/S``, ``I10=Y``), ``*NODE``, ``*ELEMENT_SOLID`` (one- and
-two-card layouts, 4/6/8/10 nodes, degenerate 8-node wedges/pyramids/tets), ``*ELEMENT_SOLID_ORTHO``,
-``*ELEMENT_SHELL`` (with ``_THICKNESS``/``_BETA``/``_MCID``/``_OFFSET``), ``*ELEMENT_BEAM`` (with its
-one-card options), ``*ELEMENT_DISCRETE``, ``*PART`` (with ``_CONTACT``/``_PRINT``/``_INERTIA``/
-``_ATTACHMENT_NODES``), ``*SET_NODE(_LIST)(_TITLE)``, ``*SET_PART(_LIST)(_TITLE)``, ``*INCLUDE``,
-``*INCLUDE_PATH(_RELATIVE)``, ``$`` comments and ``*END``. Every other keyword is kept verbatim in
-the file bytes, which the lossless writer reuses.
+What is parsed: ``*KEYWORD`` (``LONG=Y/S``, ``I10=Y``), ``*NODE``, ``*ELEMENT_SOLID`` (one-
+and two-card layouts, 4/6/8/10 nodes, degenerate 8-node wedges/pyramids/tets),
+``*ELEMENT_SOLID_ORTHO``, ``*ELEMENT_SHELL`` (with ``_THICKNESS``, ``_BETA``, ``_MCID``,
+``_OFFSET``), ``*ELEMENT_BEAM`` (with its one-card options), ``*ELEMENT_DISCRETE``, ``*PART``
+(with ``_CONTACT``, ``_PRINT``, ``_INERTIA``, ``_ATTACHMENT_NODES``),
+``*SET_NODE(_LIST)(_TITLE)``, ``*SET_PART(_LIST)(_TITLE)``, ``*INCLUDE``,
+``*INCLUDE_PATH(_RELATIVE)``, ``$`` comments and ``*END``. Every other keyword is kept verbatim
+in the file bytes, which the lossless writer reuses.
 
 Card formats: a card with a comma is free format; otherwise fixed columns: standard (I8 / E16, sets
 and parts I10), ``I10`` (``%`` suffix or ``*KEYWORD I10=Y``) or long (``+`` suffix or
@@ -637,7 +638,7 @@ class _DeckReader:
                 blocks.setdefault(etype, []).append((eids, pids, conn))
 
         for chunk in self.solid_chunks:
-            eids, pids, nodes, fi, starts, lines = chunk
+            eids, pids, nodes, fi, starts, _lines = chunk
             nnz = np.count_nonzero(nodes, axis=1)
             # nodes must be a prefix (no zero followed by a node)
             last_nz = np.where(nnz > 0, 10 - np.argmax(nodes[:, ::-1] != 0, axis=1), 0)
@@ -662,7 +663,7 @@ class _DeckReader:
                 for etype, (rows, conn) in split_degenerate_solids(idx[m][:, :8]).items():
                     add(etype, eids[m][rows], pids[m][rows], conn)
         for chunk in self.shell_chunks:
-            eids, pids, nodes, fi, starts, lines = chunk
+            eids, pids, nodes, fi, starts, _lines = chunk
             nodes4 = nodes[:, :4]
             self._check_pids(pids, chunk)
             idx = lookup(nodes4, chunk, allow_zero_tail=True)
@@ -678,7 +679,7 @@ class _DeckReader:
             add("tri3", eids[tri], pids[tri], idx[tri][:, :3])
         for sink, etype in ((self.beam_chunks, "beam2"), (self.discrete_chunks, "discrete")):
             for chunk in sink:
-                eids, pids, nodes, fi, starts, lines = chunk
+                eids, pids, nodes, _fi, _starts, _lines = chunk
                 if etype == "beam2":
                     self._check_pids(pids, chunk)
                 idx = lookup(nodes[:, :2], chunk)

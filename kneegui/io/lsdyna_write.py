@@ -76,7 +76,8 @@ def _patched_file(
             new = ",".join(fields).encode("latin-1")
         else:
             w, c = int(width[k]), int(col[k])
-            padded = bytearray(line.ljust(c + 3 * w))
+            last = max(j for j in range(3) if changed[node, j])
+            padded = bytearray(line.ljust(c + (last + 1) * w))
             for j in range(3):
                 if changed[node, j]:
                     padded[c + j * w : c + (j + 1) * w] = _format(
@@ -182,7 +183,7 @@ def write_deck(
             f = src.files[fi]
             all_edits = list(edits)
             for start, end, children in f.includes:
-                parts = [b"$ kneegui --flatten: the *INCLUDE that stood here is inlined below\n"]
+                parts = [b"$ kneegui --flatten: the include that stood here is inlined below\n"]
                 for child in children:
                     body = _strip_for_inline(src.files[child], render(child, (*stack, fi)), [])
                     name = src.files[child].rel_path.as_posix().encode("latin-1", "replace")
