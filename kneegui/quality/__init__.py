@@ -1,4 +1,11 @@
-"""Mesh quality: per-element metrics (QUALITY.md), statistics, thresholds and the quality table."""
+"""Mesh quality: per-element metrics (QUALITY.md), statistics, thresholds and the quality table.
+
+- :func:`compute_quality` / :class:`QualityEvaluator`: per-element Jacobians (corner and Gauss),
+  aspect ratio, warpage, skew, signed volume and inverted masks.
+- :func:`summarize_quality`: worst / mean / std / warn / fail per model, part and role, and the
+  change against the initial pose; :func:`format_quality_table` prints it like the paper's Table I.
+- :func:`load_thresholds`: the warn / fail table in ``resources/quality_thresholds.csv``.
+"""
 
 from kneegui.quality.metrics import (
     MEASURED_TYPES,
@@ -9,13 +16,37 @@ from kneegui.quality.metrics import (
     compute_quality,
     element_quality,
 )
+from kneegui.quality.summary import (
+    format_quality_table,
+    jsonable,
+    quality_gate,
+    summarize_quality,
+    volume_change,
+)
+from kneegui.quality.thresholds import (
+    THRESHOLD_METRICS,
+    MetricThreshold,
+    Thresholds,
+    ThresholdsError,
+    load_thresholds,
+)
 
 __all__ = [
     "MEASURED_TYPES",
     "METRICS",
+    "THRESHOLD_METRICS",
     "ElementQuality",
+    "MetricThreshold",
     "QualityEvaluator",
     "QualityResult",
+    "Thresholds",
+    "ThresholdsError",
     "compute_quality",
     "element_quality",
+    "format_quality_table",
+    "jsonable",
+    "load_thresholds",
+    "quality_gate",
+    "summarize_quality",
+    "volume_change",
 ]

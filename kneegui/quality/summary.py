@@ -1,0 +1,334 @@
+"""Quality statistics per model, part and role; change against the initial model; Table I text.
+
+``summarize_quality`` returns a JSON-ready dict::
+
+    {"metrics": [...], "thresholds": {...},
+     "model": GROUP, "parts": {"700001": GROUP, ...}, "roles": {"flesh": GROUP, ...}}
+
+where every ``GROUP`` is ``{"elements": n, "inverted": k, "<metric>": {"worst", "mean", "std",
+"warn", "fail"[, "initial_worst", "worse_than_initial"]}, ...[, "volume_change": {...}]}``.
+``warn`` / ``fail`` count the elements strictly worse than the warn / fail limits (so ``warn``
+includes the ``fail`` elements); each element is judged with the thresholds of its part's role.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.model import SOLID_TYPES, Model
+from kneegui.quality.metrics import QualityResult
+from kneegui.quality.thresholds import THRESHOLD_METRICS, Thresholds, load_thresholds
+
+#: Row labels of the quality table.
+METRIC_LABELS: dict[str, str] = {
+    "jacobian": "Jacobian (corner)",
+    "jacobian_gauss": "Jacobian (Gauss)",
+    "aspect": "Aspect ratio",
+    "warpage": "Warpage (deg)",
+    "skew": "Skew (deg)",
+}
+
+
+@dataclass(frozen=True)
+class _Flat:
+    """Every measured element of a result as flat arrays (one row per element)."""
+
+    etype: NDArray[np.str_]
+    element_ids: NDArray[np.int64]
+    part_ids: NDArray[np.int64]
+    values: dict[str, NDArray[np.float64]]
+    volume: NDArray[np.float64]
+    inverted: NDArray[np.bool_]
+    solid: NDArray[np.bool_]
+
+
+def _flatten(model: Model, result: QualityResult, etypes: Iterable[str] | None) -> _Flat:
+    wanted = [t for t in result.by_type if etypes is None or t in set(etypes)]
+    parts = {m: [] for m in THRESHOLD_METRICS}
+    etype_col, eids, pids, vols, inv, solid = [], [], [], [], [], []
+    for t in wanted:
+        q = result[t]
+        block = model.blocks[t]
+        etype_col.append(np.full(len(q), t))
+        eids.append(block.ids[q.rows])
+        pids.append(block.part_ids[q.rows])
+        for m in THRESHOLD_METRICS:
+            parts[m].append(q.metric(m))
+        vols.append(q.volume)
+        inv.append(q.inverted)
+        solid.append(np.full(len(q), t in SOLID_TYPES))
+
+    def cat(chunks, dtype):
+        return np.concatenate(chunks) if chunks else np.zeros(0, dtype=dtype)
+
+    return _Flat(
+        etype=cat(etype_col, str),
+        element_ids=cat(eids, np.int64),
+        part_ids=cat(pids, np.int64),
+        values={m: cat(v, float) for m, v in parts.items()},
+        volume=cat(vols, float),
+        inverted=cat(inv, bool),
+        solid=cat(solid, bool),
+    )
+
+
+def _aligned_initial(flat: _Flat, initial: _Flat) -> _Flat:
+    """Check that the initial result measures the same elements in the same order."""
+    if len(initial.element_ids) != len(flat.element_ids) or not np.array_equal(
+        initial.element_ids, flat.element_ids
+    ):
+        raise ValueError("initial quality result does not cover the same elements")
+    return initial
+
+
+def volume_change(
+    volume: NDArray[np.float64],
+    initial_volume: NDArray[np.float64],
+    element_ids: NDArray[np.int64] | None = None,
+) -> dict[str, float | int | None]:
+    """Element and total volume change against the initial pose.
+
+    Parameters
+    ----------
+    volume, initial_volume : (m,) ndarray of float
+        Signed element volumes now and in the initial pose (same elements, same order).
+    element_ids : (m,) ndarray of int, optional
+        Ids, to name the element with the largest change.
+
+    Returns
+    -------
+    dict
+        ``max_element_percent`` (signed change of the element whose relative change is largest
+        in magnitude), ``max_element_id``, ``total_percent`` (change of the summed volume).
+    """
+    volume = np.asarray(volume, dtype=float)
+    initial_volume = np.asarray(initial_volume, dtype=float)
+    if len(volume) == 0:
+        return {"max_element_percent": None, "max_element_id": None, "total_percent": None}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pct = 100.0 * (volume - initial_volume) / np.abs(initial_volume)
+    pct = np.where(np.isfinite(pct), pct, np.inf)
+    k = int(np.argmax(np.abs(pct)))
+    total0 = float(initial_volume.sum())
+    total = 100.0 * (float(volume.sum()) - total0) / abs(total0) if total0 != 0 else math.inf
+    return {
+        "max_element_percent": float(pct[k]),
+        "max_element_id": None if element_ids is None else int(element_ids[k]),
+        "total_percent": total,
+    }
+
+
+def _group(
+    flat: _Flat,
+    mask: NDArray[np.bool_],
+    limits: dict[str, tuple[NDArray, NDArray]],
+    thresholds: Thresholds,
+    initial: _Flat | None,
+) -> dict:
+    out: dict = {"elements": int(mask.sum()), "inverted": int(flat.inverted[mask].sum())}
+    directions = thresholds.for_role(None)
+    for m in THRESHOLD_METRICS:
+        v = flat.values[m][mask]
+        t = directions[m]
+        if len(v) == 0:
+            out[m] = {"worst": None, "mean": None, "std": None, "warn": 0, "fail": 0}
+            continue
+        finite = v[np.isfinite(v)]
+        warn_lim, fail_lim = limits[m][0][mask], limits[m][1][mask]
+        entry = {
+            "worst": t.worst(v),
+            "mean": float(finite.mean()) if len(finite) else None,
+            "std": float(finite.std()) if len(finite) else None,
+            "warn": int(np.count_nonzero(t.worse_than(v, warn_lim))),
+            "fail": int(np.count_nonzero(t.worse_than(v, fail_lim))),
+        }
+        if initial is not None:
+            v0 = initial.values[m][mask]
+            worst0 = t.worst(v0)
+            entry["initial_worst"] = worst0
+            entry["worse_than_initial"] = int(np.count_nonzero(t.worse_than(v, worst0)))
+        out[m] = entry
+    if initial is not None:
+        solid = mask & flat.solid
+        out["initial_inverted"] = int(initial.inverted[mask].sum())
+        out["volume_change"] = volume_change(
+            flat.volume[solid], initial.volume[solid], flat.element_ids[solid]
+        )
+    return out
+
+
+def summarize_quality(
+    model: Model,
+    result: QualityResult,
+    roles: Mapping[str, Iterable[int]] | None = None,
+    thresholds: Thresholds | None = None,
+    initial: QualityResult | None = None,
+    etypes: Iterable[str] | None = None,
+) -> dict:
+    """Statistics of a quality result per model, part and role.
+
+    Parameters
+    ----------
+    model : Model
+        The model the result was measured on (element and part ids).
+    result : QualityResult
+        From :func:`compute_quality` (full or a row subset).
+    roles : mapping of str to list of int, optional
+        Role name -> part ids (a part in several roles is judged with the first role's
+        thresholds).
+    thresholds : Thresholds, optional
+        Default: the shipped table.
+    initial : QualityResult, optional
+        The same elements in the initial pose: adds ``initial_worst``, ``worse_than_initial``
+        per metric and ``volume_change`` (solids) per group.
+    etypes : iterable of str, optional
+        Restrict to these element types (e.g. solids only).
+
+    Returns
+    -------
+    dict
+        JSON-ready (see the module docstring); part ids are string keys. Non-finite values
+        (an infinite aspect ratio) are kept as floats; use :func:`jsonable` before ``json.dumps``.
+    """
+    thresholds = thresholds or load_thresholds()
+    roles = {r: [int(p) for p in pids] for r, pids in (roles or {}).items()}
+    flat = _flatten(model, result, etypes)
+    init = _aligned_initial(flat, _flatten(model, initial, etypes)) if initial else None
+    # per-element limits from the role of the element's part
+    part_role: dict[int, str] = {}
+    for role, pids in roles.items():
+        for p in pids:
+            part_role.setdefault(p, role)
+    limits: dict[str, tuple[NDArray, NDArray]] = {}
+    for m in THRESHOLD_METRICS:
+        d = thresholds.default[m]
+        warn = np.full(len(flat.part_ids), d.warn)
+        fail = np.full(len(flat.part_ids), d.fail)
+        for role in set(part_role.values()):
+            t = thresholds.for_role(role)[m]
+            if (t.warn, t.fail) != (d.warn, d.fail):
+                in_role = np.isin(flat.part_ids, [p for p, r in part_role.items() if r == role])
+                warn[in_role], fail[in_role] = t.warn, t.fail
+        limits[m] = (warn, fail)
+    everything = np.ones(len(flat.part_ids), dtype=bool)
+    summary: dict = {
+        "metrics": list(THRESHOLD_METRICS),
+        "thresholds": thresholds.to_dict(),
+        "model": _group(flat, everything, limits, thresholds, init),
+        "parts": {},
+        "roles": {},
+    }
+    for pid in np.unique(flat.part_ids).tolist():
+        group = _group(flat, flat.part_ids == pid, limits, thresholds, init)
+        part = model.parts.get(pid)
+        group["title"] = part.title if part is not None else ""
+        group["role"] = part_role.get(pid)
+        summary["parts"][str(pid)] = group
+    for role, pids in roles.items():
+        group = _group(flat, np.isin(flat.part_ids, pids), limits, thresholds, init)
+        group["part_ids"] = sorted(pids)
+        summary["roles"][role] = group
+    return summary
+
+
+def jsonable(obj):
+    """A copy of a summary with ``inf`` as the string ``"inf"`` and ``nan`` as ``None``."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, float):
+        if math.isnan(obj):
+            return None
+        if math.isinf(obj):
+            return "inf" if obj > 0 else "-inf"
+    return obj
+
+
+def _fmt(x: float | None, digits: int) -> str:
+    if x is None:
+        return "n/a"
+    if isinstance(x, str):
+        return x
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return f"{x:.{digits}f}"
+
+
+def format_quality_table(
+    columns: Mapping[str, Mapping],
+    metrics: Iterable[str] = ("jacobian", "aspect", "warpage", "skew"),
+    digits: int = 2,
+) -> str:
+    """A Table I-style text table: one row per metric, ``worst (mean ± σ)`` per column.
+
+    Parameters
+    ----------
+    columns : mapping of str to dict
+        Column title -> a group of a summary (``summary["model"]``, a role, a part).
+    metrics : iterable of str
+        Rows, from ``jacobian``, ``jacobian_gauss``, ``aspect``, ``warpage``, ``skew``.
+    digits : int
+        Decimals.
+
+    Returns
+    -------
+    str
+        The table, with rows for inverted elements, element counts and (when present) the
+        volume change against the initial pose.
+    """
+    titles = list(columns)
+    rows: list[list[str]] = [["Metric", *titles]]
+    for m in metrics:
+        cells = []
+        for t in titles:
+            e = columns[t][m]
+            cells.append(
+                f"{_fmt(e['worst'], digits)} ({_fmt(e['mean'], digits)} ± {_fmt(e['std'], digits)})"
+            )
+        rows.append([METRIC_LABELS[m], *cells])
+    rows.append(
+        ["Over warn / fail (J)"]
+        + [f"{columns[t]['jacobian']['warn']} / {columns[t]['jacobian']['fail']}" for t in titles]
+    )
+    rows.append(["Inverted elements", *[str(columns[t]["inverted"]) for t in titles]])
+    if any("volume_change" in columns[t] for t in titles):
+        cells = []
+        for t in titles:
+            vc = columns[t].get("volume_change") or {}
+            cells.append(
+                f"{_fmt(vc.get('max_element_percent'), digits)} / "
+                f"{_fmt(vc.get('total_percent'), digits)}"
+            )
+        rows.append(["Volume change % (max elem / total)", *cells])
+    rows.append(["Elements", *[str(columns[t]["elements"]) for t in titles]])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = []
+    for i, r in enumerate(rows):
+        lines.append("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
+        if i == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def quality_gate(summary: Mapping) -> list[str]:
+    """Reasons a model fails the gate (empty list: it passes).
+
+    The gate: no inverted element, and, when the summary carries the initial model's values,
+    the worst corner Jacobian is no worse than the initial model's (the paper's rule).
+    """
+    group = summary["model"]
+    reasons = []
+    if group["inverted"]:
+        reasons.append(f"{group['inverted']} inverted element(s)")
+    j = group["jacobian"]
+    if "initial_worst" in j and j["worst"] is not None and j["worst"] < j["initial_worst"]:
+        reasons.append(
+            f"worst Jacobian {j['worst']:.3f} is below the initial model's {j['initial_worst']:.3f}"
+        )
+    return reasons
