@@ -377,8 +377,29 @@ def split_degenerate_solids(
     """
     conn8 = np.asarray(conn8)
     m = len(conn8)
-    srt = np.sort(conn8, axis=1)
-    n_distinct = 1 + np.count_nonzero(srt[:, 1:] != srt[:, :-1], axis=1)
+    # every degenerate pattern merges at least one hex edge: count distinct nodes only there
+    edges = (
+        (0, 1),
+        (1, 2),
+        (2, 3),
+        (3, 0),
+        (4, 5),
+        (5, 6),
+        (6, 7),
+        (7, 4),
+        (0, 4),
+        (1, 5),
+        (2, 6),
+        (3, 7),
+    )
+    merged = np.zeros(m, dtype=bool)
+    for a, b in edges:
+        merged |= conn8[:, a] == conn8[:, b]
+    n_distinct = np.full(m, 8, dtype=np.int64)
+    rows_merged = np.flatnonzero(merged)
+    if len(rows_merged):
+        srt = np.sort(conn8[rows_merged], axis=1)
+        n_distinct[rows_merged] = 1 + np.count_nonzero(srt[:, 1:] != srt[:, :-1], axis=1)
     result: dict[str, tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
     assigned = n_distinct == 8
     # wedges: exactly 6 distinct nodes and a known merged-edge pattern

@@ -41,6 +41,7 @@ from kneegui.model import ElementBlock, Model, NodeSet, Part, PartSet, split_deg
 _NL, _CR, _STAR, _DOLLAR, _SPACE, _COMMA, _TAB = 10, 13, 42, 36, 32, 44, 9
 
 STANDARD, I10, LONG = "standard", "i10", "long"
+_CHUNK = 262_144  # cards parsed per vectorised step
 
 
 @dataclass
@@ -180,16 +181,26 @@ class _DeckReader:
         is_kw = first == _STAR
         is_comment = first == _DOLLAR
         is_blank = ~nonempty
-        # lines of spaces only are blank too (cheap check only on short candidates)
-        cand = np.flatnonzero(nonempty & ~is_kw & ~is_comment & (first == _SPACE))
-        if len(cand) and len(cand) < 200_000:
-            for i in cand.tolist():
-                if not self._line(f, i).strip():
-                    is_blank[i] = True
-        elif len(cand):
-            lengths = f.line_ends[cand] - f.line_starts[cand]
-            short = cand[lengths <= 256]
-            for i in short.tolist():
+        # lines of white space only are blank too: look at the first 16 characters of each
+        # candidate vectorised, and only the rare undecided lines one by one
+        cand = np.flatnonzero(
+            nonempty & ~is_kw & ~is_comment & ((first == _SPACE) | (first == _TAB))
+        )
+        if len(cand):
+            # most lines end in a visible character: decided by one gather
+            last = arr[np.maximum(f.line_ends[cand] - 1, 0)]
+            cand = cand[(last == _SPACE) | (last == _TAB)]
+        if len(cand):
+            probe = 16
+            cols = np.arange(probe)
+            pos = f.line_starts[cand][:, None] + cols[None, :]
+            inside = cols[None, :] < (f.line_ends[cand] - f.line_starts[cand])[:, None]
+            chars = arr[np.minimum(pos, len(arr) - 1)]
+            visible = inside & (chars != _SPACE) & (chars != _TAB)
+            decided = visible.any(axis=1)
+            short = ~decided & (f.line_ends[cand] - f.line_starts[cand] <= probe)
+            is_blank[cand[short]] = True
+            for i in cand[~decided & ~short].tolist():
                 if not self._line(f, i).strip():
                     is_blank[i] = True
         kw_lines = np.flatnonzero(is_kw)
@@ -271,17 +282,26 @@ class _DeckReader:
         return [self._line(f, i) for i in b.data_lines.tolist()]
 
     def _fixed_array(self, b: _Block, lines: NDArray[np.int64], width: int) -> NDArray[np.uint8]:
-        """(n, width) bytes of the given data lines, padded with spaces."""
+        """(n, width) bytes of the given data lines, padded with spaces (may be a read-only view)."""
         f = self.files[b.file]
         arr = np.frombuffer(f.data, dtype=np.uint8)
+        n = len(lines)
+        if n == 0 or len(arr) == 0:
+            return np.full((n, width), _SPACE, dtype=np.uint8)
         starts = f.line_starts[lines]
         lengths = f.line_ends[lines] - starts
-        cols = np.arange(width)
-        idx = starts[:, None] + cols[None, :]
-        inside = cols[None, :] < lengths[:, None]
-        out = np.full((len(lines), width), _SPACE, dtype=np.uint8)
-        if len(arr):
-            out[inside] = arr[idx[inside]]
+        full = bool(np.all(lengths >= width))
+        if full and n > 1:
+            stride = np.diff(starts)
+            if np.all(stride == stride[0]) and stride[0] > 0:
+                # equally long lines (machine-written decks): a zero-copy strided view
+                return np.lib.stride_tricks.as_strided(
+                    arr[starts[0] :], shape=(n, width), strides=(int(stride[0]), 1), writeable=False
+                )
+        idx = starts[:, None] + np.arange(width)[None, :]
+        out = np.take(arr, np.minimum(idx, len(arr) - 1))
+        if not full:
+            out[np.arange(width)[None, :] >= lengths[:, None]] = _SPACE
         return out
 
     def _has_free_or_tab(self, b: _Block, lines: NDArray[np.int64]) -> bool:
@@ -444,7 +464,16 @@ class _DeckReader:
                 text = f.data[f.line_starts[i] : f.line_ends[i]]
                 slow[k] = b"," in text or b"\t" in text
         fast = np.flatnonzero(~slow)
-        if len(fast):
+        if len(fast) and len(set(widths)) == 1:
+            # equal widths: all fields of all cards in one vectorised call
+            w, nf = widths[0], len(widths)
+            for lo in range(0, len(fast), _CHUNK):  # chunks bound the temporaries' memory
+                rows = fast[lo : lo + _CHUNK]
+                chars = self._fixed_array(b, lines[rows], w * nf)
+                vals, bad = parse_int_columns(np.ascontiguousarray(chars).reshape(-1, w))
+                out[rows] = vals.reshape(len(rows), nf)
+                slow[rows[bad.reshape(len(rows), nf).any(axis=1)]] = True
+        elif len(fast):
             chars = self._fixed_array(b, lines[fast], sum(widths))
             pos = 0
             for j, w in enumerate(widths):
@@ -614,10 +643,20 @@ class _DeckReader:
                 self.files[nfile[second]].line_number(nstart[second]),
             )
 
+        contiguous = len(sids) > 0 and sids[-1] - sids[0] + 1 == len(sids)
+
         def lookup(node_ids: NDArray[np.int64], chunk: tuple, allow_zero_tail: bool = False):
-            pos = np.searchsorted(sids, node_ids)
-            pos_c = np.minimum(pos, max(len(sids) - 1, 0))
-            ok = (sids[pos_c] == node_ids) if len(sids) else np.zeros(node_ids.shape, bool)
+            if contiguous and node_ids.size and node_ids.min() >= sids[0]:
+                # ids are a range (the usual case): index arithmetic, no search
+                if node_ids.max() <= sids[-1]:
+                    return order[node_ids - sids[0]]
+            if contiguous:
+                pos_c = np.clip(node_ids - sids[0], 0, len(sids) - 1)
+                ok = (node_ids >= sids[0]) & (node_ids <= sids[-1])
+            else:
+                pos = np.searchsorted(sids, node_ids)
+                pos_c = np.minimum(pos, max(len(sids) - 1, 0))
+                ok = (sids[pos_c] == node_ids) if len(sids) else np.zeros(node_ids.shape, bool)
             if allow_zero_tail:
                 ok |= node_ids == 0
             if not np.all(ok):
@@ -651,7 +690,10 @@ class _DeckReader:
                     self.files[fi].path,
                     self.files[fi].line_number(starts[r]),
                 )
-            idx = lookup(nodes, chunk, allow_zero_tail=True)
+            if np.all(nnz == 8):
+                idx = lookup(nodes[:, :8], chunk)
+            else:
+                idx = lookup(nodes, chunk, allow_zero_tail=True)
             self._check_pids(pids, chunk)
             for k, etype in ((4, "tet4"), (6, "wedge6")):
                 m = nnz == k

@@ -1,0 +1,1 @@
+"""Benchmark harness: each module has ``run(...) -> dict`` and a ``main()`` for ``python -m``."""
