@@ -1,0 +1,60 @@
+"""``kneegui axes MODEL --setup S.json [--json]`` on a deck written by the project's writer."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import pytest
+
+from kneegui.cli import main
+from kneegui.setup import save_setup
+from kneegui.setup.synthetic import build_synthetic_knee, random_rotation
+
+lsdyna = pytest.importorskip("kneegui.io.lsdyna")
+
+
+@pytest.fixture(scope="module")
+def deck(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("axes")
+    knee = build_synthetic_knee(side="left", rotation=random_rotation(3), flexion_deg=12.0)
+    lsdyna.write_model(knee.model, folder / "knee.k")
+    save_setup(knee.setup, folder / "knee.setup.json")
+    return folder, knee
+
+
+def test_axes_json(deck, capsys):
+    folder, _knee = deck
+    code = main(
+        ["axes", str(folder / "knee.k"), "--setup", str(folder / "knee.setup.json"), "--json"]
+    )
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["lateral_radius"] == pytest.approx(20.5, abs=1e-4)
+    assert out["medial_radius"] == pytest.approx(23.3, abs=1e-4)
+    assert out["lateral_rms"] < 1e-3 and out["medial_rms"] < 1e-3
+    assert out["initial_flexion"] == pytest.approx(12.0, abs=1e-3)
+    for key in ("fe_axis", "lr_axis"):
+        assert set(out[key]) == {"point", "direction"}
+        assert sum(v * v for v in out[key]["direction"]) == pytest.approx(1.0)
+    assert out["side"] == "left"
+
+
+def test_axes_text(deck, capsys):
+    folder, _knee = deck
+    assert main(["axes", str(folder / "knee.k"), "--setup", str(folder / "knee.setup.json")]) == 0
+    text = capsys.readouterr().out
+    assert "lateral condyle: radius 20.50 mm" in text
+    assert "medial condyle:  radius 23.30 mm" in text
+    assert "initial flexion: 12.00 deg" in text
+    assert "F-E axis (GCA)" in text and "L-R axis" in text
+
+
+def test_bad_setup_exits_2(deck, capsys, tmp_path):
+    folder, knee = deck
+    data = copy.deepcopy(knee.setup)
+    data["roles"]["femur"] = [4242]
+    bad = save_setup(data, tmp_path / "bad.json")
+    assert main(["axes", str(folder / "knee.k"), "--setup", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"kneegui: {bad}: roles.femur: unknown part id 4242"

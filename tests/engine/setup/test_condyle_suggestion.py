@@ -1,0 +1,73 @@
+"""Condyle node-set suggestion from the femur surface, in any orientation and for both sides."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from kneegui.errors import GeometryError
+from kneegui.geometry import compute_joint_axes
+from kneegui.model import ElementBlock, Model
+from kneegui.setup import load_setup, suggest_condyle_nodes, surface_node_indices
+from kneegui.setup.condyles import femur_frame
+from kneegui.setup.synthetic import _hex_box, build_synthetic_knee, random_rotation
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+@pytest.mark.parametrize("seed", [None, 31, 32, 33])
+@pytest.mark.parametrize("hints", [True, False])
+def test_suggested_sets_fit_the_designed_circles(side, seed, hints):
+    rot = None if seed is None else random_rotation(seed)
+    knee = build_synthetic_knee(side=side, rotation=rot, translation=[-300.0, 40.0, 12.0])
+    kwargs = {"tibia_part_ids": [201], "patella_part_ids": [401]} if hints else {}
+    lateral, medial = suggest_condyle_nodes(knee.model, [101, 102], side, **kwargs)
+    designed_lat = set(knee.setup["landmarks"]["lateral_condyle"])
+    designed_med = set(knee.setup["landmarks"]["medial_condyle"])
+    # not swapped, and mostly the designed arc nodes
+    assert len(set(lateral) & designed_lat) >= 0.9 * len(lateral)
+    assert len(set(medial) & designed_med) >= 0.9 * len(medial)
+    assert len(lateral) >= 20 and len(medial) >= 20
+    data = copy.deepcopy(knee.setup)
+    data["landmarks"]["lateral_condyle"] = lateral.tolist()
+    data["landmarks"]["medial_condyle"] = medial.tolist()
+    axes = compute_joint_axes(knee.model.coords, load_setup(data, knee.model))
+    assert axes.lateral_fit.radius == pytest.approx(20.5, abs=0.3)
+    assert axes.medial_fit.radius == pytest.approx(23.3, abs=0.3)
+    assert axes.initial_flexion_deg == pytest.approx(9.0, abs=0.5)
+
+
+def test_femur_frame_directions():
+    rot = random_rotation(40)
+    knee = build_synthetic_knee(side="left", rotation=rot)
+    frame = femur_frame(knee.model, [101, 102], "left", tibia_part_ids=[201])
+    world = knee.to_world[:3, :3]
+    np.testing.assert_allclose(frame["superior"], world[:, 2], atol=1e-6)
+    np.testing.assert_allclose(frame["anterior"], world[:, 0], atol=1e-6)
+    # medial of the built knee is +y; mirrored into the left knee by 'world'
+    np.testing.assert_allclose(frame["medial"], world @ [0.0, 1.0, 0.0], atol=1e-6)
+
+
+def test_surface_of_a_hex_block():
+    pts, conn = _hex_box([0, 0, 0], [3, 3, 3], (3, 3, 3))
+    model = Model(
+        np.arange(len(pts)) + 1,
+        pts,
+        {"hex8": ElementBlock("hex8", np.arange(27) + 1, np.ones(27), conn)},
+    )
+    surf = surface_node_indices(model, [1])
+    assert len(surf) == 4**3 - 2**3
+    inner = np.all((pts > 0.5) & (pts < 2.5), axis=1)
+    assert not np.any(np.isin(np.flatnonzero(inner), surf))
+
+
+def test_femur_without_shape_raises():
+    pts, conn = _hex_box([0, 0, 0], [3, 3, 3], (3, 3, 3))
+    model = Model(
+        np.arange(len(pts)) + 1,
+        pts,
+        {"hex8": ElementBlock("hex8", np.arange(27) + 1, np.ones(27), conn)},
+    )
+    with pytest.raises(GeometryError, match="not elongated"):
+        suggest_condyle_nodes(model, [1], "right")
