@@ -9,6 +9,7 @@ from kneegui.setup.format import (
     save_setup,
     setup_to_json,
 )
+from kneegui.setup.landmarks import suggest_axis_landmarks, suggest_setup
 from kneegui.setup.roles import suggest_roles
 
 __all__ = [
@@ -19,7 +20,9 @@ __all__ = [
     "load_setup",
     "save_setup",
     "setup_to_json",
+    "suggest_axis_landmarks",
     "suggest_condyle_nodes",
     "suggest_roles",
+    "suggest_setup",
     "surface_node_indices",
 ]
