@@ -208,19 +208,13 @@ def resolve_table(quantity: str, choice: str, base_dir: str | Path | None = None
         raise SetupError(f"unknown kinematic quantity {quantity!r}", key="kinematics")
     if not isinstance(choice, str) or not choice.strip():
         raise SetupError(f"expected a table name or path, got {choice!r}", key=key)
-    return _resolve_cached(quantity, choice.strip(), str(base_dir) if base_dir else "")
-
-
-@lru_cache(maxsize=64)
-def _resolve_cached(quantity: str, choice: str, base_dir: str) -> KinematicTable:
-    key = f"kinematics.{quantity}"
-    for t in shipped_tables():
-        if t.quantity != quantity:
-            continue
-        if (choice == "default" and t.default) or choice == t.name:
-            return read_table_csv(TABLES_DIR / t.file, quantity, name=t.name)
+    choice = choice.strip()
+    shipped = _shipped_table(quantity, choice)
+    if shipped is not None:
+        return shipped
     if choice == "default":
         raise SetupError("no default table is shipped", key=key)
+    # a user's file is read every time (it may have been edited since)
     path = Path(choice).expanduser()
     if not path.is_absolute() and base_dir:
         path = Path(base_dir) / path
@@ -231,3 +225,14 @@ def _resolve_cached(quantity: str, choice: str, base_dir: str) -> KinematicTable
         names = ", ".join(["default", *table_names(quantity)])
         raise SetupError(f"unknown table {choice!r} (shipped: {names})", key=key)
     return read_table_csv(path, quantity, name=str(path))
+
+
+@lru_cache(maxsize=32)
+def _shipped_table(quantity: str, choice: str) -> KinematicTable | None:
+    """The shipped table named ``choice`` (or the default), read once; None if not shipped."""
+    for t in shipped_tables():
+        if t.quantity != quantity:
+            continue
+        if (choice == "default" and t.default) or choice == t.name:
+            return read_table_csv(TABLES_DIR / t.file, quantity, name=t.name)
+    return None

@@ -110,3 +110,11 @@ def test_unknown_names():
         resolve_table("patellar_flexion", "nowhere/table.csv")
     with pytest.raises(SetupError, match="unknown kinematic quantity"):
         resolve_table("knee_spin", "default")
+
+
+def test_edited_user_table_is_reread(tmp_path):
+    path = tmp_path / "mine.csv"
+    path.write_text("flexion_deg,value_deg\n0,0\n100,10\n")
+    assert resolve_table("patellar_tilt", str(path)).value_at(50.0) == pytest.approx(5.0)
+    path.write_text("flexion_deg,value_deg\n0,0\n100,20\n")
+    assert resolve_table("patellar_tilt", str(path)).value_at(50.0) == pytest.approx(10.0)
