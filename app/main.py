@@ -1,0 +1,94 @@
+"""``kneegui-gui [DECK] [--setup S] [--screenshot PNG] [--flexion DEG] [--demo-elements N]``.
+
+With no deck the window opens the built-in demo leg with its setup. With ``--screenshot`` it
+saves a PNG of the real window once the model is posed and rendered, then exits (0 on success).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+READY_TIMEOUT_S = 300.0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="kneegui-gui", description=__doc__.splitlines()[0])
+    parser.add_argument("deck", nargs="?", help="LS-DYNA deck (.k/.key/.dyn); default: demo leg")
+    parser.add_argument("--setup", help="joint setup JSON for the deck")
+    parser.add_argument("--screenshot", metavar="PNG", help="save a window screenshot and exit")
+    parser.add_argument("--flexion", type=float, help="pose the knee at this angle (degrees)")
+    parser.add_argument(
+        "--colour",
+        choices=("part", "quality", "stretch"),
+        help="colour mode to show (with --metric for quality)",
+    )
+    parser.add_argument(
+        "--metric",
+        default="jacobian",
+        choices=("jacobian", "aspect", "warpage", "skew", "volume_change"),
+    )
+    parser.add_argument(
+        "--demo-elements", type=int, default=None, help="size of the generated demo leg (elements)"
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    os.environ.setdefault("QT_API", "pyside6")
+    from PySide6.QtCore import QTimer
+    from PySide6.QtWidgets import QApplication
+
+    from app.main_window import APPLICATION, ORGANIZATION, MainWindow
+
+    app = QApplication.instance() or QApplication(sys.argv[:1])
+    app.setOrganizationName(ORGANIZATION)
+    app.setApplicationName(APPLICATION)
+    window = MainWindow()
+    window.show()
+    status = {"code": 0}
+
+    def start() -> None:
+        if args.deck:
+            window.guard(window.open_deck, args.deck, args.setup)
+        else:
+            window.guard(window.open_demo, args.demo_elements)
+
+    QTimer.singleShot(0, start)
+    started = time.monotonic()
+
+    def when_ready() -> None:
+        ws = window.ws
+        ready = ws.poser is not None and not ws.tasks.busy
+        failed = window.last_error is not None and not ws.tasks.busy and ws.poser is None
+        if not ready and not failed and time.monotonic() - started < READY_TIMEOUT_S:
+            QTimer.singleShot(100, when_ready)
+            return
+        if ready:
+            if args.flexion is not None:
+                ws.set_flexion(args.flexion)
+            if args.colour:
+                ws.set_metric(args.metric)
+                ws.set_colour_mode(args.colour)
+        if args.screenshot:
+            QTimer.singleShot(300, lambda: finish(ready))
+
+    def finish(ready: bool) -> None:
+        window.viewport.flush()
+        out = window.save_screenshot(Path(args.screenshot))
+        print(f"screenshot: {out}" + ("" if ready else f" (not ready: {window.last_error})"))
+        status["code"] = 0 if ready else 1
+        window.close()
+        app.quit()
+
+    QTimer.singleShot(200, when_ready)
+    app.exec()
+    return status["code"]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

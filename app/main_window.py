@@ -1,0 +1,350 @@
+"""The main window: viewport in the centre, panels in docks, menus, status bar with progress.
+
+Errors from any action are caught at one boundary (:meth:`MainWindow.guard` and the workspace's
+``error`` signal) and shown in a non-blocking dialog naming the file and line; a failed open
+keeps the previous model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtCore import QByteArray, QPoint, QSettings, Qt
+from PySide6.QtGui import QAction, QImage, QKeySequence, QPainter
+from PySide6.QtWidgets import (
+    QDockWidget,
+    QFileDialog,
+    QLabel,
+    QMainWindow,
+    QMessageBox,
+    QProgressBar,
+    QPushButton,
+    QToolBar,
+    QWidget,
+)
+
+from app.panels import FlexionPanel, LandmarkPanel, LigamentPanel, ModelPanel, QualityPanel
+from app.viewport import CAMERA_PRESETS, Viewport
+from app.workspace import ExportBlocked, Workspace
+from kneegui.errors import DeckError, SetupError
+
+ORGANIZATION = "kneegui"
+APPLICATION = "kneegui-gui"
+MAX_RECENT = 8
+DECK_FILTER = "LS-DYNA decks (*.k *.key *.dyn);;All files (*)"
+
+
+def app_settings() -> QSettings:
+    """The application's settings (INI format; tests redirect its folder with QSettings.setPath)."""
+    return QSettings(
+        QSettings.Format.IniFormat, QSettings.Scope.UserScope, ORGANIZATION, APPLICATION
+    )
+
+
+def describe_error(exc: BaseException) -> str:
+    """One message naming the file and line when the error knows them."""
+    if isinstance(exc, DeckError):
+        where = str(exc.path) if exc.path else ""
+        if exc.line is not None:
+            where += f", line {exc.line}"
+        return f"{exc.message}\n\nFile: {where}" if where else exc.message
+    if isinstance(exc, SetupError):
+        parts = [exc.message]
+        if exc.key:
+            parts.append(f"Key: {exc.key}")
+        if exc.path:
+            parts.append(f"File: {exc.path}")
+        return "\n\n".join(parts)
+    return f"{type(exc).__name__}: {exc}"
+
+
+class MainWindow(QMainWindow):
+    """kneegui's window. ``workspace`` holds all state; this class wires widgets to it."""
+
+    def __init__(self, workspace: Workspace | None = None):
+        super().__init__()
+        self.setWindowTitle("kneegui — knee repositioning")
+        self.setObjectName("kneegui-main")
+        self.ws = workspace or Workspace(self)
+        self.settings = app_settings()
+        self.last_error: str | None = None
+        self.error_dialog: QMessageBox | None = None
+        self.viewport = Viewport(self.ws, self)
+        self.setCentralWidget(self.viewport)
+        self.model_panel = ModelPanel(self.ws)
+        self.landmark_panel = LandmarkPanel(self.ws)
+        self.quality_panel = QualityPanel(self.ws)
+        self.ligament_panel = LigamentPanel(self.ws)
+        self.flexion_panel = FlexionPanel(self.ws)
+        self.docks: dict[str, QDockWidget] = {}
+        self._dock("Model", self.model_panel, Qt.DockWidgetArea.LeftDockWidgetArea)
+        self._dock("Landmarks", self.landmark_panel, Qt.DockWidgetArea.RightDockWidgetArea)
+        self._dock("Quality", self.quality_panel, Qt.DockWidgetArea.RightDockWidgetArea)
+        self._dock("Ligaments", self.ligament_panel, Qt.DockWidgetArea.RightDockWidgetArea)
+        self._dock("Flexion", self.flexion_panel, Qt.DockWidgetArea.BottomDockWidgetArea)
+        self.tabifyDockWidget(self.docks["Landmarks"], self.docks["Quality"])
+        self.tabifyDockWidget(self.docks["Quality"], self.docks["Ligaments"])
+        self.docks["Landmarks"].raise_()
+        self._build_status()
+        self._build_actions()
+        self.quality_panel.zoom_requested.connect(self.viewport.zoom_to_element)
+        self.ws.error.connect(self.show_error)
+        self.ws.status.connect(lambda text: self.statusBar().showMessage(text, 8000))
+        self.ws.tasks.started.connect(self._task_started)
+        self.ws.tasks.progress.connect(self._task_progress)
+        self.ws.tasks.finished.connect(self._task_finished)
+        self.ws.model_changed.connect(self._update_title)
+        self.resize(1500, 920)
+        self._restore_layout()
+
+    # ------------------------------------------------------------------ construction
+    def _dock(self, title: str, widget: QWidget, area) -> None:
+        dock = QDockWidget(title, self)
+        dock.setObjectName(f"dock-{title.lower()}")
+        dock.setWidget(widget)
+        self.addDockWidget(area, dock)
+        self.docks[title] = dock
+
+    def _build_status(self) -> None:
+        bar = self.statusBar()
+        self.task_label = QLabel("")
+        self.progress = QProgressBar()
+        self.progress.setRange(0, 1000)
+        self.progress.setMaximumWidth(220)
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.clicked.connect(self.ws.tasks.cancel)
+        for w in (self.task_label, self.progress, self.cancel_button):
+            bar.addPermanentWidget(w)
+            w.setVisible(False)
+
+    def _action(self, menu, text: str, slot: Callable, shortcut=None) -> QAction:
+        action = QAction(text, self)
+        if shortcut is not None:
+            action.setShortcut(QKeySequence(shortcut))
+        action.triggered.connect(lambda _checked=False: self.guard(slot))
+        menu.addAction(action)
+        return action
+
+    def _build_actions(self) -> None:
+        mb = self.menuBar()
+        file_menu = mb.addMenu("&File")
+        self._action(file_menu, "Open deck…", self.open_deck_dialog, QKeySequence.StandardKey.Open)
+        self._action(file_menu, "Open demo leg", self.open_demo)
+        self.recent_menu = file_menu.addMenu("Recent decks")
+        file_menu.addSeparator()
+        self._action(file_menu, "Open setup…", self.open_setup_dialog)
+        self._action(
+            file_menu, "Save setup…", self.save_setup_dialog, QKeySequence.StandardKey.Save
+        )
+        file_menu.addSeparator()
+        self._action(file_menu, "Export posed deck…", self.export_dialog, "Ctrl+E")
+        self._action(file_menu, "Screenshot…", self.screenshot_dialog, "Ctrl+P")
+        file_menu.addSeparator()
+        self._action(file_menu, "Quit", self.close, QKeySequence.StandardKey.Quit)
+        edit = mb.addMenu("&Edit")
+        self._action(edit, "Undo landmark/role edit", self.ws.undo, QKeySequence.StandardKey.Undo)
+        self._action(edit, "Redo", self.ws.redo, QKeySequence.StandardKey.Redo)
+        tools = mb.addMenu("&Mesh")
+        self._action(tools, "Smooth current pose", self.ws.smooth)
+        self._action(tools, "Ligament lengths vs. flexion", self.ws.compute_ligament_curve)
+        view = mb.addMenu("&View")
+        toolbar = QToolBar("View", self)
+        toolbar.setObjectName("toolbar-view")
+        self.addToolBar(toolbar)
+        for name in CAMERA_PRESETS:
+            act = self._action(
+                view, name.capitalize(), lambda n=name: self.viewport.camera_preset(n)
+            )
+            toolbar.addAction(act)
+        toolbar.addSeparator()
+        for text, slot in (
+            ("Smooth", self.ws.smooth),
+            ("Export…", self.export_dialog),
+            ("Screenshot…", self.screenshot_dialog),
+        ):
+            act = QAction(text, self)
+            act.triggered.connect(lambda _c=False, s=slot: self.guard(s))
+            toolbar.addAction(act)
+        view.addSeparator()
+        for dock in self.docks.values():
+            view.addAction(dock.toggleViewAction())
+        self._refresh_recent()
+
+    # ------------------------------------------------------------------ error boundary
+    def guard(self, fn: Callable, *args, **kwargs):
+        """Run ``fn``; any exception becomes an error dialog (the app never crashes)."""
+        try:
+            return fn(*args, **kwargs)
+        except ExportBlocked as exc:
+            self._confirm_forced_export(exc)
+        except Exception as exc:
+            self.show_error(exc)
+        return None
+
+    def show_error(self, exc: BaseException) -> None:
+        """Show ``exc`` in a non-blocking dialog (file and line when known)."""
+        text = describe_error(exc)
+        self.last_error = text
+        self.statusBar().showMessage(text.splitlines()[0], 10000)
+        box = QMessageBox(
+            QMessageBox.Icon.Critical, "kneegui", text, QMessageBox.StandardButton.Ok, self
+        )
+        box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        self.error_dialog = box
+        box.open()
+
+    # ------------------------------------------------------------------ file actions
+    def open_demo(self, elements: int | None = None) -> None:
+        from app.demo import DEFAULT_DEMO_ELEMENTS, demo_files
+
+        deck, setup = demo_files(elements or DEFAULT_DEMO_ELEMENTS)
+        self.ws.open_deck(deck, setup)
+
+    def open_deck(self, path: str | Path, setup: str | Path | None = None) -> None:
+        path = Path(path)
+        if setup is None:
+            guess = path.with_suffix(".setup.json")
+            setup = guess if guess.is_file() else None
+        self.ws.open_deck(path, setup)
+        self._add_recent(path)
+
+    def open_deck_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open deck", self._last_dir(), DECK_FILTER)
+        if path:
+            self.open_deck(path)
+
+    def open_setup_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(
+            self, "Open setup", self._last_dir(), "Setup (*.json);;All files (*)"
+        )
+        if path:
+            self.ws.open_setup(path)
+
+    def save_setup_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(
+            self, "Save setup", self._last_dir(), "Setup (*.json)"
+        )
+        if path:
+            self.ws.save_setup(path)
+
+    def export_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(
+            self, "Export posed deck", self._last_dir(), "LS-DYNA deck (*.k)"
+        )
+        if path:
+            self._export_target = path
+            self.ws.export(path)
+
+    def _confirm_forced_export(self, exc: ExportBlocked) -> None:
+        box = QMessageBox(
+            QMessageBox.Icon.Warning,
+            "Inverted elements",
+            str(exc),
+            QMessageBox.StandardButton.Cancel,
+            self,
+        )
+        force = box.addButton("Export anyway", QMessageBox.ButtonRole.DestructiveRole)
+        box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        target = getattr(self, "_export_target", None)
+
+        def answered(_result):
+            if box.clickedButton() is force and target:
+                self.guard(self.ws.export, target, True)
+
+        box.finished.connect(answered)
+        self.error_dialog = box
+        box.open()
+
+    def screenshot_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Screenshot", self._last_dir(), "PNG (*.png)")
+        if path:
+            self.save_screenshot(path)
+
+    def save_screenshot(self, path: str | Path) -> Path:
+        """Save the whole window as a PNG, 3-D view included."""
+        self.viewport.flush()
+        self.viewport.render()
+        image = self.grab().toImage()
+        view = self.viewport.plotter
+        frame = self.viewport.plotter.screenshot(None, return_img=True)
+        if frame is not None and frame.size:
+            h, w = frame.shape[:2]
+            rgb = np.ascontiguousarray(frame[:, :, :3])
+            qimg = QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).copy()
+            painter = QPainter(image)
+            ratio = image.devicePixelRatio() or 1.0
+            origin = view.mapTo(self, QPoint(0, 0))
+            target = qimg.scaled(int(view.width() * ratio), int(view.height() * ratio))
+            target.setDevicePixelRatio(ratio)
+            painter.drawImage(origin, target)
+            painter.end()
+        out = Path(path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if not image.save(str(out), "PNG"):
+            raise OSError(f"could not write {out}")
+        return out
+
+    # ------------------------------------------------------------------ recent / layout
+    def _last_dir(self) -> str:
+        return str(self.settings.value("last_dir", str(Path.home())))
+
+    def recent_files(self) -> list[str]:
+        value = self.settings.value("recent_decks", [])
+        if isinstance(value, str):
+            value = [value]
+        return [str(v) for v in (value or [])]
+
+    def _add_recent(self, path: Path) -> None:
+        items = [str(path)] + [p for p in self.recent_files() if p != str(path)]
+        self.settings.setValue("recent_decks", items[:MAX_RECENT])
+        self.settings.setValue("last_dir", str(path.parent))
+        self._refresh_recent()
+
+    def _refresh_recent(self) -> None:
+        self.recent_menu.clear()
+        for p in self.recent_files():
+            act = self.recent_menu.addAction(p)
+            act.triggered.connect(lambda _c=False, q=p: self.guard(self.open_deck, q))
+        self.recent_menu.setEnabled(bool(self.recent_files()))
+
+    def _restore_layout(self) -> None:
+        geometry = self.settings.value("window/geometry")
+        state = self.settings.value("window/state")
+        if isinstance(geometry, QByteArray):
+            self.restoreGeometry(geometry)
+        if isinstance(state, QByteArray):
+            self.restoreState(state)
+
+    def save_layout(self) -> None:
+        self.settings.setValue("window/geometry", self.saveGeometry())
+        self.settings.setValue("window/state", self.saveState())
+        self.settings.sync()
+
+    def closeEvent(self, event) -> None:
+        self.save_layout()
+        self.ws.tasks.cancel()
+        self.ws.tasks.wait(5000)
+        self.viewport.plotter.close()
+        super().closeEvent(event)
+
+    # ------------------------------------------------------------------ tasks
+    def _task_started(self, name: str) -> None:
+        self.task_label.setText(name)
+        self.progress.setValue(0)
+        for w in (self.task_label, self.progress, self.cancel_button):
+            w.setVisible(True)
+
+    def _task_progress(self, fraction: float, message: str) -> None:
+        self.progress.setValue(int(1000 * max(0.0, min(1.0, fraction))))
+        if message:
+            self.task_label.setText(message)
+
+    def _task_finished(self, _name: str) -> None:
+        for w in (self.task_label, self.progress, self.cancel_button):
+            w.setVisible(False)
+
+    def _update_title(self) -> None:
+        name = self.ws.deck_path.name if self.ws.deck_path else "demo"
+        self.setWindowTitle(f"kneegui — {name}")

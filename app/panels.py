@@ -1,0 +1,517 @@
+"""Dock panels. Each one calls the workspace and listens to it; none talks to another.
+
+- :class:`ModelPanel`: parts grouped by role, colour swatches, visibility, role editing, counts.
+- :class:`LandmarkPanel`: pick targets, condyle sets, axis points, fits (radius, RMS), undo/redo.
+- :class:`FlexionPanel`: the flexion slider and spin box.
+- :class:`QualityPanel`: heat-map metric, threshold, worst elements with zoom, cut-away.
+- :class:`LigamentPanel`: stretch colouring and the length-vs-flexion plot.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from PySide6.QtCore import QSignalBlocker, Qt, Signal
+from PySide6.QtGui import QColor, QIcon, QPixmap
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QDoubleSpinBox,
+    QFormLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QListWidget,
+    QListWidgetItem,
+    QPushButton,
+    QSlider,
+    QTreeWidget,
+    QTreeWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from app.colors import ROLE_COLOURS, UNASSIGNED_COLOUR
+from app.workspace import FLEXION_RANGE, HEATMAP_METRICS, Workspace
+from kneegui.setup import ROLES
+
+SLIDER_STEPS_PER_DEGREE = 10
+
+
+def _swatch(colour: str) -> QIcon:
+    pix = QPixmap(14, 14)
+    pix.fill(QColor(colour))
+    return QIcon(pix)
+
+
+# ---------------------------------------------------------------------------- model
+class ModelPanel(QWidget):
+    """Part tree grouped by role: swatch, visibility check box, role (editable), elements."""
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        layout = QVBoxLayout(self)
+        self.summary = QLabel("no model")
+        self.summary.setWordWrap(True)
+        layout.addWidget(self.summary)
+        self.tree = QTreeWidget()
+        self.tree.setColumnCount(3)
+        self.tree.setHeaderLabels(["Part", "Role", "Elements"])
+        self.tree.setRootIsDecorated(True)
+        header = self.tree.header()
+        header.setStretchLastSection(False)
+        header.setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)
+        header.setSectionResizeMode(1, QHeaderView.ResizeMode.Fixed)
+        header.setSectionResizeMode(2, QHeaderView.ResizeMode.ResizeToContents)
+        header.resizeSection(1, 110)
+        self.setMinimumWidth(360)
+        layout.addWidget(self.tree)
+        self.tree.itemChanged.connect(self._on_item_changed)
+        ws.model_changed.connect(self.refresh)
+        ws.setup_changed.connect(self.refresh)
+        ws.display_changed.connect(lambda what: what == "visibility" and self.refresh())
+        self.role_boxes: dict[int, QComboBox] = {}
+
+    def refresh(self) -> None:
+        ws = self.ws
+        model = ws.model
+        with QSignalBlocker(self.tree):
+            self.tree.clear()
+            self.role_boxes.clear()
+            if model is None:
+                return
+            self.summary.setText(
+                f"{ws.deck_path.name if ws.deck_path else 'demo'}: {model.n_nodes} nodes, "
+                f"{model.n_elements} elements, {len(model.part_ids())} parts"
+            )
+            counts = model.element_counts()
+            groups: dict[str | None, list[int]] = {}
+            for pid in model.part_ids().tolist():
+                groups.setdefault(ws.part_role(pid), []).append(pid)
+            for role in [*ROLES, None]:
+                pids = groups.get(role)
+                if not pids:
+                    continue
+                colour = ROLE_COLOURS.get(role, UNASSIGNED_COLOUR)
+                n = sum(sum(counts.get(p, {}).values()) for p in pids)
+                top = QTreeWidgetItem([role or "unassigned", "", str(n)])
+                top.setIcon(0, _swatch(colour))
+                top.setFlags(top.flags() | Qt.ItemFlag.ItemIsUserCheckable)
+                hidden = all(p in ws.hidden_parts for p in pids)
+                top.setCheckState(0, Qt.CheckState.Unchecked if hidden else Qt.CheckState.Checked)
+                top.setData(0, Qt.ItemDataRole.UserRole, ("role", role))
+                self.tree.addTopLevelItem(top)
+                for pid in pids:
+                    part = model.parts.get(pid)
+                    title = part.title if part else ""
+                    item = QTreeWidgetItem(
+                        [f"{pid} {title}".strip(), "", str(sum(counts.get(pid, {}).values()))]
+                    )
+                    item.setIcon(0, _swatch(colour))
+                    item.setFlags(item.flags() | Qt.ItemFlag.ItemIsUserCheckable)
+                    item.setCheckState(
+                        0,
+                        Qt.CheckState.Unchecked
+                        if pid in ws.hidden_parts
+                        else Qt.CheckState.Checked,
+                    )
+                    item.setData(0, Qt.ItemDataRole.UserRole, ("part", pid))
+                    top.addChild(item)
+                    box = QComboBox()
+                    box.addItems(["(none)", *ROLES])
+                    box.setCurrentText(role or "(none)")
+                    box.currentTextChanged.connect(
+                        lambda text, p=pid: self.ws.set_part_role(
+                            p, None if text == "(none)" else text
+                        )
+                    )
+                    self.tree.setItemWidget(item, 1, box)
+                    self.role_boxes[pid] = box
+                top.setExpanded(role not in ("skin", "flesh", "fixed", None))
+
+    def _on_item_changed(self, item: QTreeWidgetItem, column: int) -> None:
+        if column != 0:
+            return
+        kind, value = item.data(0, Qt.ItemDataRole.UserRole)
+        visible = item.checkState(0) == Qt.CheckState.Checked
+        if kind == "part":
+            self.ws.set_part_visible(value, visible)
+        else:
+            for i in range(item.childCount()):
+                _, pid = item.child(i).data(0, Qt.ItemDataRole.UserRole)
+                self.ws.set_part_visible(pid, visible)
+
+
+# ---------------------------------------------------------------------------- landmarks
+PICK_TARGETS = (
+    ("lateral_condyle", "Lateral condyle nodes"),
+    ("medial_condyle", "Medial condyle nodes"),
+    ("lr_axis:0", "L-R axis: proximal (medial plateau)"),
+    ("lr_axis:1", "L-R axis: distal (ankle centre)"),
+    ("femur_axis:0", "Femoral axis: proximal"),
+    ("femur_axis:1", "Femoral axis: distal"),
+    ("tibia_axis:0", "Tibial axis: proximal"),
+    ("tibia_axis:1", "Tibial axis: distal"),
+)
+
+
+class LandmarkPanel(QWidget):
+    """Pick condyle sets and axis points; shows the circle fits and axes live."""
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        layout = QVBoxLayout(self)
+        self.pick_box = QCheckBox("Pick in the view")
+        self.pick_box.setToolTip("Left click: nearest node; left drag: box; Ctrl: remove")
+        layout.addWidget(self.pick_box)
+        self.target = QComboBox()
+        for key, label in PICK_TARGETS:
+            self.target.addItem(label, key)
+        layout.addWidget(self.target)
+        row = QHBoxLayout()
+        self.clear_button = QPushButton("Clear set")
+        self.suggest_button = QPushButton("Suggest condyles")
+        row.addWidget(self.clear_button)
+        row.addWidget(self.suggest_button)
+        layout.addLayout(row)
+        row = QHBoxLayout()
+        self.undo_button = QPushButton("Undo")
+        self.redo_button = QPushButton("Redo")
+        row.addWidget(self.undo_button)
+        row.addWidget(self.redo_button)
+        layout.addLayout(row)
+        box = QGroupBox("Landmarks and fit")
+        form = QFormLayout(box)
+        self.labels: dict[str, QLabel] = {}
+        for key, label in (
+            ("lateral_condyle", "Lateral nodes"),
+            ("medial_condyle", "Medial nodes"),
+            ("lateral_fit", "Lateral circle"),
+            ("medial_fit", "Medial circle"),
+            ("lr_axis", "L-R axis"),
+            ("femur_axis", "Femoral axis"),
+            ("tibia_axis", "Tibial axis"),
+            ("flexion", "Initial flexion"),
+        ):
+            self.labels[key] = QLabel("–")
+            self.labels[key].setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+            form.addRow(label, self.labels[key])
+        layout.addWidget(box)
+        self.problem = QLabel("")
+        self.problem.setWordWrap(True)
+        self.problem.setStyleSheet("color: #d04040")
+        layout.addWidget(self.problem)
+        layout.addStretch(1)
+        self.pick_box.toggled.connect(self._on_pick_changed)
+        self.target.currentIndexChanged.connect(self._on_pick_changed)
+        self.clear_button.clicked.connect(self._clear)
+        self.suggest_button.clicked.connect(ws.suggest_condyles)
+        self.undo_button.clicked.connect(ws.undo)
+        self.redo_button.clicked.connect(ws.redo)
+        ws.setup_changed.connect(self.refresh)
+        ws.model_changed.connect(self.refresh)
+        ws.display_changed.connect(lambda what: what == "undo" and self.refresh())
+        ws.pick_target_changed.connect(self._sync_pick)
+
+    def _on_pick_changed(self, *_args) -> None:
+        key = self.target.currentData() if self.pick_box.isChecked() else ""
+        self.ws.set_pick_target(key)
+
+    def _sync_pick(self, target: str) -> None:
+        with QSignalBlocker(self.pick_box), QSignalBlocker(self.target):
+            self.pick_box.setChecked(bool(target))
+            if target:
+                self.target.setCurrentIndex(self.target.findData(target))
+
+    def _clear(self) -> None:
+        key = self.target.currentData()
+        if key in ("lateral_condyle", "medial_condyle"):
+            self.ws.set_condyle_ids(key, [])
+
+    def refresh(self) -> None:
+        ws = self.ws
+        self.undo_button.setEnabled(ws.can_undo)
+        self.redo_button.setEnabled(ws.can_redo)
+        lm = ws.setup_dict.get("landmarks", {})
+        for key in ("lateral_condyle", "medial_condyle"):
+            self.labels[key].setText(f"{len(lm.get(key, []) or [])} nodes")
+        for key in ("lr_axis", "femur_axis", "tibia_axis"):
+            pts = lm.get(key, []) or []
+            self.labels[key].setText(
+                " → ".join(
+                    "–" if p is None else (f"node {p}" if isinstance(p, int) else "xyz")
+                    for p in pts
+                )
+                or "–"
+            )
+        axes = ws.axes if ws.setup_problem is None else None
+        if axes is not None:
+            for side, fit in (("lateral", axes.lateral_fit), ("medial", axes.medial_fit)):
+                self.labels[f"{side}_fit"].setText(
+                    f"R = {fit.radius:.2f} mm, RMS = {fit.rms:.3f} mm, arc {fit.arc_span_deg:.0f}°"
+                )
+            self.labels["flexion"].setText(f"{axes.initial_flexion_deg:.1f}°")
+        else:
+            for key in ("lateral_fit", "medial_fit", "flexion"):
+                self.labels[key].setText("–")
+        problem = ws.setup_problem or ""
+        warnings = list(axes.warnings) if axes is not None else []
+        self.problem.setText("\n".join(([f"Setup: {problem}"] if problem else []) + warnings))
+
+
+# ---------------------------------------------------------------------------- flexion
+class FlexionPanel(QWidget):
+    """Slider and spin box, −5°…140°, driving ``Workspace.set_flexion``."""
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        layout = QHBoxLayout(self)
+        layout.addWidget(QLabel("Flexion"))
+        self.slider = QSlider(Qt.Orientation.Horizontal)
+        lo, hi = FLEXION_RANGE
+        self.slider.setRange(int(lo * SLIDER_STEPS_PER_DEGREE), int(hi * SLIDER_STEPS_PER_DEGREE))
+        self.slider.setMinimumWidth(300)
+        layout.addWidget(self.slider, 1)
+        self.spin = QDoubleSpinBox()
+        self.spin.setRange(lo, hi)
+        self.spin.setDecimals(1)
+        self.spin.setSuffix("°")
+        self.spin.setKeyboardTracking(False)
+        layout.addWidget(self.spin)
+        self.info = QLabel("")
+        layout.addWidget(self.info)
+        self.slider.valueChanged.connect(lambda v: self.ws.set_flexion(v / SLIDER_STEPS_PER_DEGREE))
+        self.spin.valueChanged.connect(self.ws.set_flexion)
+        ws.coords_changed.connect(self.sync)
+        ws.poser_changed.connect(self.sync)
+        ws.model_changed.connect(self.sync)
+        self.sync()
+
+    def sync(self) -> None:
+        ws = self.ws
+        enabled = ws.poser is not None
+        self.slider.setEnabled(enabled)
+        self.spin.setEnabled(enabled)
+        with QSignalBlocker(self.slider), QSignalBlocker(self.spin):
+            self.slider.setValue(round(ws.flexion * SLIDER_STEPS_PER_DEGREE))
+            self.spin.setValue(ws.flexion)
+        if ws.poser is None:
+            self.info.setText("preparing…" if ws.model is not None else "")
+        else:
+            kind = getattr(ws.poser, "kind", "")
+            tag = " (smoothed)" if ws.smoothed else ""
+            self.info.setText(f"initial {ws.poser.initial_flexion:.1f}° · {kind}{tag}")
+
+
+# ---------------------------------------------------------------------------- quality
+class QualityPanel(QWidget):
+    """Colour mode, heat-map metric, threshold highlight, worst elements, cut-away."""
+
+    zoom_requested = Signal(int)
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        layout = QVBoxLayout(self)
+        form = QFormLayout()
+        self.mode = QComboBox()
+        self.mode.addItem("Part colours", "part")
+        self.mode.addItem("Quality heat-map", "quality")
+        self.mode.addItem("Ligament stretch", "stretch")
+        form.addRow("Colour by", self.mode)
+        self.metric = QComboBox()
+        for key, (label, _, _) in HEATMAP_METRICS.items():
+            self.metric.addItem(label, key)
+        form.addRow("Metric", self.metric)
+        row = QHBoxLayout()
+        self.threshold_on = QCheckBox()
+        self.threshold = QDoubleSpinBox()
+        self.threshold.setRange(-1000, 1000)
+        self.threshold.setDecimals(2)
+        self.threshold.setValue(0.3)
+        row.addWidget(self.threshold_on)
+        row.addWidget(self.threshold, 1)
+        form.addRow("Highlight beyond", row)
+        layout.addLayout(form)
+        self.stats = QLabel("")
+        self.stats.setWordWrap(True)
+        layout.addWidget(self.stats)
+        layout.addWidget(QLabel("Worst elements (double-click to zoom)"))
+        self.worst = QListWidget()
+        layout.addWidget(self.worst, 1)
+        clip = QGroupBox("Cut-away")
+        clip_form = QFormLayout(clip)
+        self.clip_on = QCheckBox("Cut away the")
+        self.clip_side = QComboBox()
+        self.clip_side.addItems(["lateral", "medial", "anterior", "posterior"])
+        row = QHBoxLayout()
+        row.addWidget(self.clip_on)
+        row.addWidget(self.clip_side)
+        clip_form.addRow(row)
+        self.clip_offset = QDoubleSpinBox()
+        self.clip_offset.setRange(-200, 200)
+        self.clip_offset.setSuffix(" mm")
+        clip_form.addRow("Plane offset", self.clip_offset)
+        layout.addWidget(clip)
+        self.mode.currentIndexChanged.connect(
+            lambda: self.ws.set_colour_mode(self.mode.currentData())
+        )
+        self.metric.currentIndexChanged.connect(
+            lambda: self.ws.set_metric(self.metric.currentData())
+        )
+        self.threshold_on.toggled.connect(self._on_threshold)
+        self.threshold.valueChanged.connect(self._on_threshold)
+        self.worst.itemDoubleClicked.connect(
+            lambda item: self.zoom_requested.emit(int(item.data(Qt.ItemDataRole.UserRole)))
+        )
+        for w in (self.clip_on,):
+            w.toggled.connect(self._on_clip)
+        self.clip_side.currentIndexChanged.connect(self._on_clip)
+        self.clip_offset.valueChanged.connect(self._on_clip)
+        ws.display_changed.connect(self._on_display)
+        ws.coords_changed.connect(self._schedule)
+        ws.model_changed.connect(self._schedule)
+        from PySide6.QtCore import QTimer
+
+        self._timer = QTimer(self)
+        self._timer.setSingleShot(True)
+        self._timer.setInterval(150)
+        self._timer.timeout.connect(self.refresh)
+
+    def _on_threshold(self, *_args) -> None:
+        self.ws.set_threshold(self.threshold.value() if self.threshold_on.isChecked() else None)
+
+    def _on_clip(self, *_args) -> None:
+        self.ws.set_clip(
+            self.clip_on.isChecked(), self.clip_side.currentText(), self.clip_offset.value()
+        )
+
+    def _on_display(self, what: str) -> None:
+        ws = self.ws
+        with (
+            QSignalBlocker(self.mode),
+            QSignalBlocker(self.metric),
+            QSignalBlocker(self.threshold_on),
+            QSignalBlocker(self.threshold),
+        ):
+            self.mode.setCurrentIndex(self.mode.findData(ws.colour_mode))
+            self.metric.setCurrentIndex(self.metric.findData(ws.metric))
+            self.threshold_on.setChecked(ws.threshold is not None)
+            if ws.threshold is not None:
+                self.threshold.setValue(ws.threshold)
+        if what == "colour":
+            self._schedule()
+
+    def _schedule(self) -> None:
+        if self.isVisible():
+            self._timer.start()
+
+    def showEvent(self, event) -> None:
+        super().showEvent(event)
+        self._schedule()
+
+    def refresh(self) -> None:
+        ws = self.ws
+        if ws.model is None:
+            return
+        q = ws.quality()
+        values = ws.element_values(ws.metric)
+        finite = values[np.isfinite(values)]
+        label = HEATMAP_METRICS[ws.metric][0]
+        if len(finite):
+            self.stats.setText(
+                f"{q.n_elements} measured · inverted {q.n_inverted} · worst Jacobian "
+                f"{q.worst_jacobian():.3f}\n{label}: min {finite.min():.3g}, "
+                f"mean {finite.mean():.3g}, max {finite.max():.3g}"
+            )
+        self.worst.clear()
+        for cell, eid, part, value in ws.worst_elements(ws.metric, 25):
+            item = QListWidgetItem(f"{eid:>8}  {value:9.3f}  {part}")
+            item.setData(Qt.ItemDataRole.UserRole, cell)
+            self.worst.addItem(item)
+
+
+# ---------------------------------------------------------------------------- ligaments
+class LigamentPanel(QWidget):
+    """Ligament stretch colouring and each ligament's length vs. flexion."""
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        layout = QVBoxLayout(self)
+        self.show_stretch = QPushButton("Colour ligaments by stretch")
+        self.compute = QPushButton("Compute length vs. flexion")
+        layout.addWidget(self.show_stretch)
+        layout.addWidget(self.compute)
+        self.table = QLabel("")
+        self.table.setWordWrap(True)
+        layout.addWidget(self.table)
+        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+        from matplotlib.figure import Figure
+
+        self.figure = Figure(figsize=(3.2, 2.4), dpi=90, layout="constrained")
+        self.canvas = FigureCanvasQTAgg(self.figure)
+        self.canvas.setMinimumHeight(200)
+        layout.addWidget(self.canvas, 1)
+        self.show_stretch.clicked.connect(lambda: ws.set_colour_mode("stretch"))
+        self.compute.clicked.connect(lambda: ws.compute_ligament_curve())
+        ws.ligaments_changed.connect(self.redraw)
+        ws.poser_changed.connect(self.redraw)
+        ws.coords_changed.connect(self._update_table)
+        self.redraw()
+
+    def _update_table(self) -> None:
+        ws = self.ws
+        if not ws.ligaments or not self.isVisible():
+            return
+        rows = []
+        for lig in ws.ligaments:
+            s = lig.element_stretch(ws.coords)
+            rows.append(
+                f"{lig.name}: length {lig.length(ws.coords):.1f} mm "
+                f"({100 * (lig.length(ws.coords) / lig.initial_length - 1):+.1f} %), "
+                f"fibre stretch {s.min():.3f}…{s.max():.3f}"
+            )
+        self.table.setText("\n".join(rows))
+        if ws.ligament_curve is not None:
+            self._marker()
+
+    def redraw(self) -> None:
+        ws = self.ws
+        self.figure.clear()
+        ax = self.figure.add_subplot(111)
+        ax.set_xlabel("flexion (°)")
+        ax.set_ylabel("length / initial")
+        self._ax = ax
+        self._line = None
+        if ws.ligament_curve is not None and ws.ligaments:
+            angles, lengths = ws.ligament_curve
+            for j, lig in enumerate(ws.ligaments):
+                ax.plot(angles, lengths[:, j] / lig.initial_length, label=lig.name)
+            ax.legend(fontsize=7)
+            ax.grid(alpha=0.3)
+            self._marker()
+        else:
+            ax.text(
+                0.5,
+                0.5,
+                "press 'Compute'" if ws.ligaments else "no ligament parts",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+            )
+        self.canvas.draw_idle()
+        self._update_table()
+
+    def _marker(self) -> None:
+        if self._line is not None:
+            self._line.remove()
+        self._line = self._ax.axvline(self.ws.flexion, color="k", lw=0.8, ls="--")
+        self.canvas.draw_idle()
+
+    def showEvent(self, event) -> None:
+        super().showEvent(event)
+        self._update_table()

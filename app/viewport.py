@@ -1,0 +1,577 @@
+"""The 3-D view: a pyvistaqt interactor wrapped in a widget that listens to the workspace.
+
+Scene = one actor per part (its boundary faces, :func:`app.scene.part_surfaces`), plus overlays
+(threshold highlight, focused element, condyle nodes, axis points, fitted circles, F-E and L-R
+axes). When the pose changes, every actor's VTK points are overwritten IN PLACE from the
+workspace's coordinate array (a numpy view on the VTK buffer) and one render is scheduled on a
+timer, so a burst of slider events costs one redraw. Colours (heat-map, stretch) likewise update
+the faces' ``value`` array in place.
+
+Picking (landmark panel): with a pick target set, a left click picks the nearest surface node of
+the pickable parts under the cursor, a left drag box-selects the visible surface nodes inside
+the rectangle; Ctrl removes instead of adding. Other buttons still pan and zoom.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+import vtk
+from numpy.typing import NDArray
+from PySide6.QtCore import QEvent, QObject, QPoint, QRect, QSize, Qt, QTimer
+from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
+from pyvistaqt import QtInteractor
+from vtk.util.numpy_support import vtk_to_numpy
+
+from app.colors import ROLE_COLOURS, UNASSIGNED_COLOUR
+from app.scene import PartSurface, build_grid, part_surfaces
+from app.workspace import HEATMAP_METRICS, Workspace
+
+PICK_CLICK_PIXELS = 4
+CAMERA_PRESETS = ("lateral", "medial", "anterior", "posterior")
+
+
+class Viewport(QWidget):
+    """The VTK view of the workspace's model (wraps, does not subclass, ``QtInteractor``)."""
+
+    def __init__(self, workspace: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = workspace
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        self.plotter = QtInteractor(self, auto_update=False)
+        self.plotter.set_background("#20242b", top="#4a5361")
+        layout.addWidget(self.plotter)
+        self.plotter.add_axes()
+        self.surfaces: dict[int, PartSurface] = {}
+        self.actors: dict[int, vtk.vtkActor] = {}
+        self._points: dict[int, NDArray[np.float64]] = {}
+        self.grid: pv.UnstructuredGrid | None = None
+        self._overlays: dict[str, object] = {}
+        self._highlight: tuple[pv.UnstructuredGrid, NDArray[np.int64]] | None = None
+        self._focus: tuple[pv.UnstructuredGrid, NDArray[np.int64]] | None = None
+        self._scalar_title = ""
+        self._clip_plane = vtk.vtkPlane()
+        self._dirty: set[str] = set()
+        self.renders = 0
+        self._timer = QTimer(self)
+        self._timer.setSingleShot(True)
+        self._timer.setInterval(0)
+        self._timer.timeout.connect(self.flush)
+        self._picker = _PickFilter(self)
+        self.plotter.installEventFilter(self._picker)
+        ws = workspace
+        ws.model_changed.connect(self._on_model)
+        ws.coords_changed.connect(lambda: self.request("points"))
+        ws.setup_changed.connect(lambda: self.request("landmarks", "colour"))
+        ws.poser_changed.connect(lambda: self.request("landmarks"))
+        ws.display_changed.connect(self._on_display)
+        ws.pick_target_changed.connect(lambda _t: self.request("landmarks"))
+
+    # ------------------------------------------------------------------ batching
+    def request(self, *what: str) -> None:
+        """Ask for a redraw of ``what`` (points, colour, visibility, clip, landmarks, ...)."""
+        self._dirty.update(what)
+        if not self._timer.isActive():
+            self._timer.start()
+
+    def _on_display(self, what: str) -> None:
+        if what in ("colour", "threshold", "visibility", "clip", "landmarks"):
+            self.request(what)
+
+    def flush(self) -> None:
+        """Apply every pending change and render once."""
+        dirty, self._dirty = self._dirty, set()
+        if not dirty or self.ws.model is None or not self.actors:
+            return
+        if "points" in dirty:
+            self._update_points()
+            if self.ws.colour_mode != "part" or self.ws.threshold is not None:
+                dirty.add("colour")
+            dirty.add("landmarks")
+        if "visibility" in dirty:
+            for pid, actor in self.actors.items():
+                actor.SetVisibility(pid not in self.ws.hidden_parts)
+        if "colour" in dirty or "threshold" in dirty:
+            self._update_colours()
+        if "clip" in dirty:
+            self._update_clip()
+        if "landmarks" in dirty:
+            self._update_landmarks()
+        self.render()
+
+    def render(self) -> None:
+        """Render now."""
+        self.plotter.render()
+        self.renders += 1
+
+    # ------------------------------------------------------------------ scene
+    def _on_model(self) -> None:
+        model = self.ws.model
+        self.plotter.clear_actors()
+        self._overlays.clear()
+        self._highlight = self._focus = None
+        if self._scalar_title:
+            self.plotter.remove_scalar_bar(self._scalar_title)
+            self._scalar_title = ""
+        self.surfaces = part_surfaces(model)
+        self.grid = build_grid(model)
+        self.actors.clear()
+        self._points.clear()
+        for pid, surf in self.surfaces.items():
+            actor = self.plotter.add_mesh(
+                surf.mesh,
+                scalars="value",
+                show_scalar_bar=False,
+                cmap="viridis",
+                smooth_shading=False,
+                line_width=3,
+                render_lines_as_tubes=False,
+                name=f"part-{pid}",
+                reset_camera=False,
+                nan_color="#b0b0b0",
+            )
+            actor.mapper.SetScalarVisibility(False)
+            self.actors[pid] = actor
+            self._points[pid] = vtk_to_numpy(surf.mesh.GetPoints().GetData())
+        self._colour_parts()
+        self.request("points", "visibility", "colour", "clip", "landmarks")
+        self.flush()
+        self.camera_preset("lateral")
+
+    def _colour_parts(self) -> None:
+        for pid, actor in self.actors.items():
+            role = self.ws.part_role(pid)
+            actor.prop.color = ROLE_COLOURS.get(role, UNASSIGNED_COLOUR)
+            actor.prop.opacity = 1.0
+
+    def _update_points(self) -> None:
+        coords = self.ws.coords
+        for pid, surf in self.surfaces.items():
+            np.take(coords, surf.model_index, axis=0, out=self._points[pid])
+            surf.mesh.GetPoints().Modified()
+        for item in (self._highlight, self._focus):
+            if item is not None:
+                grid, idx = item
+                vtk_to_numpy(grid.GetPoints().GetData())[:] = coords[idx]
+                grid.GetPoints().Modified()
+
+    # ------------------------------------------------------------------ colours
+    def _update_colours(self) -> None:
+        ws = self.ws
+        self._colour_parts()
+        mode = ws.colour_mode
+        if self._scalar_title:
+            self.plotter.remove_scalar_bar(self._scalar_title)
+            self._scalar_title = ""
+        if mode == "part":
+            for actor in self.actors.values():
+                actor.mapper.SetScalarVisibility(False)
+            self._set_highlight(None)
+            return
+        if mode == "quality":
+            values = ws.element_values(ws.metric)
+            title = HEATMAP_METRICS[ws.metric][0]
+            cmap = "RdYlBu" if HEATMAP_METRICS[ws.metric][2] else "RdYlBu_r"
+            clim = _quality_clim(ws.metric, values)
+        else:
+            values = ws.ligament_stretch_values()
+            title = "Fibre stretch"
+            cmap = "coolwarm"
+            finite = values[np.isfinite(values)]
+            half = max(0.02, float(np.max(np.abs(finite - 1.0)))) if len(finite) else 0.1
+            clim = (1.0 - half, 1.0 + half)
+        lut = pv.LookupTable(cmap=cmap)
+        lut.scalar_range = clim
+        lut.nan_color = "#b0b0b0"
+        first = None
+        for pid, surf in self.surfaces.items():
+            face_values = values[surf.cell_index]
+            arr = surf.mesh.cell_data["value"]
+            arr[:] = face_values
+            surf.mesh.cell_data["value"] = arr
+            actor = self.actors[pid]
+            has = bool(np.isfinite(face_values).any())
+            actor.mapper.SetScalarVisibility(has)
+            if has:
+                actor.mapper.lookup_table = lut
+                actor.mapper.scalar_range = clim
+                first = first or actor.mapper
+        if first is not None:
+            self._scalar_title = title
+            self.plotter.add_scalar_bar(
+                title,
+                mapper=first,
+                n_labels=5,
+                fmt="%.2f",
+                vertical=True,
+                position_x=0.88,
+                position_y=0.2,
+                height=0.6,
+                width=0.06,
+            )
+        if mode == "quality" and ws.threshold is not None:
+            low_bad = HEATMAP_METRICS[ws.metric][2]
+            with np.errstate(invalid="ignore"):
+                bad = values < ws.threshold if low_bad else values > ws.threshold
+            self._set_highlight(np.flatnonzero(bad))
+            for actor in self.actors.values():
+                actor.prop.opacity = 0.25
+        else:
+            self._set_highlight(None)
+
+    def highlighted_cells(self) -> NDArray[np.int64]:
+        """Global cell indices currently highlighted by the threshold."""
+        if self._highlight is None:
+            return np.zeros(0, dtype=np.int64)
+        return np.asarray(self._highlight[0].cell_data["vtkOriginalCellIds"], dtype=np.int64)
+
+    def _extract(self, cells: NDArray[np.int64]) -> tuple[pv.UnstructuredGrid, NDArray[np.int64]]:
+        assert self.grid is not None
+        sub = self.grid.extract_cells(cells)
+        idx = np.asarray(sub.point_data["vtkOriginalPointIds"], dtype=np.int64)
+        vtk_to_numpy(sub.GetPoints().GetData())[:] = self.ws.coords[idx]
+        return sub, idx
+
+    def _set_highlight(self, cells: NDArray[np.int64] | None) -> None:
+        if cells is None or not len(cells):
+            self._highlight = None
+            self.plotter.remove_actor("highlight", render=False)
+            return
+        current = self.highlighted_cells()
+        if self._highlight is not None and np.array_equal(current, cells):
+            return
+        sub, idx = self._extract(cells)
+        self._highlight = (sub, idx)
+        self.plotter.add_mesh(
+            sub,
+            color="#ff00ff",
+            show_edges=True,
+            edge_color="black",
+            name="highlight",
+            reset_camera=False,
+            render=False,
+        )
+
+    def zoom_to_element(self, cell: int) -> None:
+        """Centre the camera on one element (global cell index) and outline it."""
+        sub, idx = self._extract(np.array([cell], dtype=np.int64))
+        self._focus = (sub, idx)
+        self.plotter.add_mesh(
+            sub,
+            style="wireframe",
+            color="#00ffff",
+            line_width=4,
+            name="focus",
+            reset_camera=False,
+            render=False,
+        )
+        centre = self.ws.coords[idx].mean(axis=0)
+        size = float(np.ptp(self.ws.coords[idx], axis=0).max()) or 1.0
+        cam = self.plotter.camera
+        direction = np.asarray(cam.position) - np.asarray(cam.focal_point)
+        direction /= np.linalg.norm(direction) or 1.0
+        cam.focal_point = centre
+        cam.position = centre + direction * size * 12.0
+        self.plotter.reset_camera_clipping_range()
+        self.render()
+
+    # ------------------------------------------------------------------ clip
+    def _update_clip(self) -> None:
+        ws = self.ws
+        frame = ws.knee_frame()
+        direction = {
+            "lateral": frame["lateral"],
+            "medial": -frame["lateral"],
+            "anterior": frame["anterior"],
+            "posterior": -frame["anterior"],
+        }[ws.clip_normal]
+        origin = frame["center"] + ws.clip_offset * direction
+        # keep the side opposite to the named one: the named half is cut away
+        self._clip_plane.SetOrigin(*origin)
+        self._clip_plane.SetNormal(*(-direction))
+        for actor in self.actors.values():
+            mapper = actor.GetMapper()
+            mapper.RemoveAllClippingPlanes()
+            if ws.clip_enabled:
+                mapper.AddClippingPlane(self._clip_plane)
+
+    # ------------------------------------------------------------------ landmarks
+    def _update_landmarks(self) -> None:
+        ws = self.ws
+        pl = self.plotter
+        for name in ("lateral_nodes", "medial_nodes", "axis_points", "circles", "axes_lines"):
+            pl.remove_actor(name, render=False)
+        model = ws.model
+        if model is None:
+            return
+        coords = ws.coords
+        for key, colour, name in (
+            ("lateral_condyle", "#ff4040", "lateral_nodes"),
+            ("medial_condyle", "#40a0ff", "medial_nodes"),
+        ):
+            ids = ws.condyle_ids(key)
+            ids = [i for i in ids if model.has_nodes([i])[0]]
+            if ids:
+                pts = coords[model.node_index(ids)]
+                pl.add_points(
+                    pts,
+                    color=colour,
+                    point_size=9,
+                    render_points_as_spheres=True,
+                    name=name,
+                    reset_camera=False,
+                    render=False,
+                    pickable=False,
+                )
+        pts = []
+        for key in ("lr_axis", "femur_axis", "tibia_axis"):
+            for p in ws.setup_dict.get("landmarks", {}).get(key, []) or []:
+                if isinstance(p, int) and model.has_nodes([p])[0]:
+                    pts.append(coords[model.node_index(p)])
+                elif isinstance(p, list) and len(p) == 3:
+                    pts.append(np.asarray(p, dtype=float))
+        if pts:
+            pl.add_points(
+                np.array(pts),
+                color="#ffd700",
+                point_size=14,
+                render_points_as_spheres=True,
+                name="axis_points",
+                reset_camera=False,
+                render=False,
+                pickable=False,
+            )
+        axes = self.current_axes()
+        if axes is None:
+            return
+        circles = []
+        for fit, centre in (
+            (axes.lateral_fit, axes.lateral_center),
+            (axes.medial_fit, axes.medial_center),
+        ):
+            t = np.linspace(0, 2 * np.pi, 73)
+            ring = np.asarray(centre)[None] + fit.radius * (
+                np.cos(t)[:, None] * axes.anterior[None] + np.sin(t)[:, None] * axes.superior[None]
+            )
+            circles.append(pv.lines_from_points(ring))
+        pl.add_mesh(
+            circles[0].merge(circles[1]),
+            color="#00ff80",
+            line_width=4,
+            name="circles",
+            reset_camera=False,
+            render=False,
+            pickable=False,
+        )
+        span = 1.6 * float(np.linalg.norm(axes.lateral_center - axes.medial_center)) + 20.0
+        fe = axes.fe_axis
+        lines = [pv.Line(fe.point - span * fe.direction, fe.point + span * fe.direction)]
+        lr = axes.lr_axis
+        lines.append(pv.Line(lr.point, lr.point - 400.0 * lr.direction))
+        merged = lines[0].merge(lines[1])
+        pl.add_mesh(
+            merged,
+            color="#ffffff",
+            line_width=3,
+            name="axes_lines",
+            reset_camera=False,
+            render=False,
+            pickable=False,
+        )
+
+    def current_axes(self):
+        """Joint axes of the current pose (None without a valid setup)."""
+        ws = self.ws
+        if ws.setup is None or ws.setup_problem is not None:
+            return None
+        if ws.coords is ws.model.coords or np.array_equal(ws.coords, ws.model.coords):
+            return ws.axes
+        from kneegui.geometry import compute_joint_axes
+
+        try:
+            return compute_joint_axes(ws.coords, ws.setup)
+        except Exception:
+            return ws.axes
+
+    # ------------------------------------------------------------------ camera
+    def camera_preset(self, name: str) -> None:
+        """Look at the knee from the lateral, medial, anterior or posterior side."""
+        if name not in CAMERA_PRESETS or self.ws.model is None:
+            raise ValueError(f"unknown camera preset {name!r}")
+        frame = self.ws.knee_frame()
+        direction = {
+            "lateral": frame["lateral"],
+            "medial": -frame["lateral"],
+            "anterior": frame["anterior"],
+            "posterior": -frame["anterior"],
+        }[name]
+        visible = [
+            self.surfaces[p].model_index for p in self.surfaces if p not in self.ws.hidden_parts
+        ]
+        pts = self.ws.coords[np.concatenate(visible)] if visible else self.ws.coords
+        extent = float(np.linalg.norm(np.ptp(pts, axis=0))) or 1.0
+        centre = frame["center"]
+        cam = self.plotter.camera
+        cam.focal_point = centre
+        cam.position = centre + direction * extent * 1.4
+        cam.up = frame["superior"]
+        self.plotter.reset_camera_clipping_range()
+        self.render()
+
+    def screenshot(self, path) -> None:
+        """Save the 3-D view as a PNG."""
+        self.plotter.screenshot(str(path))
+
+    # ------------------------------------------------------------------ picking
+    def pickable_parts(self) -> list[int]:
+        """Parts the current pick target may pick on (visible ones)."""
+        ws = self.ws
+        target = ws.pick_target
+        if not target or ws.model is None:
+            return []
+        roles = ws.setup_dict.get("roles", {})
+        if target in ("lateral_condyle", "medial_condyle") or target.startswith("femur_axis"):
+            pids = roles.get("femur", [])
+        else:
+            pids = [p for r in ("femur", "tibia", "fibula", "patella") for p in roles.get(r, [])]
+        return [int(p) for p in pids if int(p) in self.actors and int(p) not in ws.hidden_parts]
+
+    def _display_size(self) -> tuple[int, int]:
+        w, h = self.plotter.ren_win.GetSize()
+        return int(w), int(h)
+
+    def _to_display(self, pos: QPoint) -> tuple[float, float]:
+        ratio = self.plotter.devicePixelRatioF()
+        _, h = self._display_size()
+        return pos.x() * ratio, h - 1 - pos.y() * ratio
+
+    def pick_at(self, pos: QPoint) -> int | None:
+        """Node id of the nearest pickable surface node under widget position ``pos``."""
+        pids = self.pickable_parts()
+        if not pids:
+            return None
+        picker = vtk.vtkCellPicker()
+        picker.SetTolerance(0.002)
+        picker.PickFromListOn()
+        for pid in pids:
+            picker.AddPickList(self.actors[pid])
+        x, y = self._to_display(pos)
+        if not picker.Pick(x, y, 0, self.plotter.renderer):
+            return None
+        actor = picker.GetActor()
+        pid = next((p for p in pids if self.actors[p] is actor), None)
+        if pid is None:
+            return None
+        surf = self.surfaces[pid]
+        point = np.array(picker.GetPickPosition())
+        cell = surf.mesh.GetCell(picker.GetCellId())
+        ids = np.array([cell.GetPointId(i) for i in range(cell.GetNumberOfPoints())])
+        local = ids[np.argmin(np.linalg.norm(self._points[pid][ids] - point, axis=1))]
+        return int(self.ws.model.node_ids[surf.model_index[local]])
+
+    def nodes_in_rect(self, rect: QRect) -> list[int]:
+        """Node ids of the visible pickable surface nodes inside a widget rectangle."""
+        pids = self.pickable_parts()
+        if not pids:
+            return []
+        index = np.unique(np.concatenate([self.surfaces[p].model_index for p in pids]))
+        xyz = self.ws.coords[index]
+        ren = self.plotter.renderer
+        w, h = self._display_size()
+        matrix = ren.GetActiveCamera().GetCompositeProjectionTransformMatrix(
+            ren.GetTiledAspectRatio(), -1, 1
+        )
+        m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+        hom = np.column_stack([xyz, np.ones(len(xyz))]) @ m.T
+        ndc = hom[:, :3] / hom[:, 3:4]
+        vx0, vy0, vx1, vy1 = ren.GetViewport()
+        dx = (vx0 + (ndc[:, 0] + 1) / 2 * (vx1 - vx0)) * w
+        dy = (vy0 + (ndc[:, 1] + 1) / 2 * (vy1 - vy0)) * h
+        depth = (ndc[:, 2] + 1) / 2
+        a = self._to_display(rect.topLeft())
+        b = self._to_display(rect.bottomRight())
+        x0, x1 = sorted((a[0], b[0]))
+        y0, y1 = sorted((a[1], b[1]))
+        inside = (dx >= x0) & (dx <= x1) & (dy >= y0) & (dy <= y1) & (np.abs(ndc[:, 2]) <= 1)
+        if not inside.any():
+            return []
+        # visibility: compare each point's depth with the z-buffer around its pixel
+        self.render()
+        ix0, iy0 = max(int(x0), 0), max(int(y0), 0)
+        ix1, iy1 = min(int(np.ceil(x1)), w - 1), min(int(np.ceil(y1)), h - 1)
+        zarr = vtk.vtkFloatArray()
+        self.plotter.ren_win.GetZbufferData(ix0, iy0, ix1, iy1, zarr)
+        zbuf = vtk_to_numpy(zarr).reshape(iy1 - iy0 + 1, ix1 - ix0 + 1)
+        cand = np.flatnonzero(inside)
+        px = np.clip(np.round(dx[cand]).astype(int) - ix0, 0, zbuf.shape[1] - 1)
+        py = np.clip(np.round(dy[cand]).astype(int) - iy0, 0, zbuf.shape[0] - 1)
+        near = np.full(len(cand), np.inf)
+        for ox in (-1, 0, 1):
+            for oy in (-1, 0, 1):
+                qx = np.clip(px + ox, 0, zbuf.shape[1] - 1)
+                qy = np.clip(py + oy, 0, zbuf.shape[0] - 1)
+                near = np.minimum(near, zbuf[qy, qx])
+        visible = depth[cand] <= near + 2e-3
+        chosen = index[cand[visible]]
+        return [int(i) for i in self.ws.model.node_ids[chosen]]
+
+    def apply_pick(self, ids: list[int], remove: bool) -> None:
+        """Hand picked node ids to the workspace."""
+        self.ws.pick_nodes(ids, remove=remove)
+
+
+class _PickFilter(QObject):
+    """Qt event filter on the interactor: left click / drag = pick while a target is set."""
+
+    def __init__(self, viewport: Viewport):
+        super().__init__(viewport)
+        self.vp = viewport
+        self._start: QPoint | None = None
+        self._band: QRubberBand | None = None
+
+    def eventFilter(self, obj, event) -> bool:
+        if not self.vp.ws.pick_target:
+            return False
+        t = event.type()
+        if t == QEvent.Type.MouseButtonPress and event.button() == Qt.MouseButton.LeftButton:
+            self._start = event.position().toPoint()
+            if self._band is None:
+                self._band = QRubberBand(QRubberBand.Shape.Rectangle, self.vp.plotter)
+            self._band.setGeometry(QRect(self._start, QSize()))
+            self._band.show()
+            return True
+        if t == QEvent.Type.MouseMove and self._start is not None:
+            self._band.setGeometry(QRect(self._start, event.position().toPoint()).normalized())
+            return True
+        if (
+            t == QEvent.Type.MouseButtonRelease
+            and self._start is not None
+            and event.button() == Qt.MouseButton.LeftButton
+        ):
+            end = event.position().toPoint()
+            start, self._start = self._start, None
+            self._band.hide()
+            remove = bool(event.modifiers() & Qt.KeyboardModifier.ControlModifier)
+            if (end - start).manhattanLength() <= PICK_CLICK_PIXELS:
+                node = self.vp.pick_at(end)
+                ids = [] if node is None else [node]
+            else:
+                ids = self.vp.nodes_in_rect(QRect(start, end).normalized())
+            self.vp.apply_pick(ids, remove)
+            return True
+        return False
+
+
+def _quality_clim(metric: str, values: NDArray[np.float64]) -> tuple[float, float]:
+    finite = values[np.isfinite(values)]
+    if metric == "jacobian":
+        return (0.0, 1.0)
+    if metric in ("warpage", "skew"):
+        hi = float(np.percentile(finite, 99.5)) if len(finite) else 1.0
+        return (0.0, max(hi, 1.0))
+    if metric == "aspect":
+        hi = float(np.percentile(finite, 99.5)) if len(finite) else 2.0
+        return (1.0, max(hi, 1.5))
+    span = float(np.percentile(np.abs(finite), 99.5)) if len(finite) else 1.0
+    return (-max(span, 0.5), max(span, 0.5))

@@ -1,0 +1,645 @@
+"""The one state object of the window: model, setup, poser, current pose, quality and view state.
+
+Widgets call :class:`Workspace` methods and listen to its signals; they never call each other.
+Long work (reading a deck, precomputing the repositioner, smoothing, export, ligament curves)
+runs through :attr:`Workspace.tasks` in a worker thread. Engine errors propagate out of the
+methods called from the GUI (they are shown at one boundary, see ``MainWindow.guard``); errors of
+background tasks are emitted through :attr:`Workspace.error`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from PySide6.QtCore import QObject, QTimer, Signal
+
+from app.poser import Poser, make_poser
+from kneegui.errors import GeometryError, KneeguiError, SetupError
+from kneegui.geometry import JointAxes, compute_joint_axes
+from kneegui.ligaments import Ligament, length_curve, ligament_fibres
+from kneegui.model import Model
+from kneegui.quality import QualityEvaluator, QualityResult
+from kneegui.setup import ROLES, JointSetup, load_setup
+
+#: Slider range (degrees).
+FLEXION_RANGE = (-5.0, 140.0)
+#: Heat-map metrics: key -> (label, QualityResult metric name, "low is bad" flag).
+HEATMAP_METRICS: dict[str, tuple[str, str, bool]] = {
+    "jacobian": ("Jacobian", "jacobian_corner", True),
+    "aspect": ("Aspect ratio", "aspect", False),
+    "warpage": ("Warpage (°)", "warpage", False),
+    "skew": ("Skew (°)", "skew", False),
+    "volume_change": ("Volume change (%)", "volume_change", False),
+}
+#: Default threshold per metric (from resources/quality_thresholds.csv "warn" where it exists).
+CONDYLE_KEYS = ("lateral_condyle", "medial_condyle")
+AXIS_KEYS = ("lr_axis", "femur_axis", "tibia_axis")
+
+
+class ExportBlocked(KneeguiError):
+    """Export refused because the posed mesh has inverted elements (pass force=True)."""
+
+
+class Workspace(QObject):
+    """State of one window. See the module docstring.
+
+    Signals
+    -------
+    model_changed : a new model (and setup) was loaded
+    setup_changed : the setup dictionary changed (roles, landmarks); ``setup``/``axes`` updated
+    poser_changed : a new poser is ready (initial flexion may differ)
+    coords_changed : the current coordinates changed (slider, smoothing)
+    display_changed(str) : a view setting changed (colour, metric, threshold, visibility, clip)
+    pick_target_changed(str) : the landmark being picked ('' when not picking)
+    ligaments_changed : ligament length curves were (re)computed
+    error(object) : a background task failed (the exception)
+    status(str) : a one-line message for the status bar
+    """
+
+    model_changed = Signal()
+    setup_changed = Signal()
+    poser_changed = Signal()
+    coords_changed = Signal()
+    display_changed = Signal(str)
+    pick_target_changed = Signal(str)
+    ligaments_changed = Signal()
+    error = Signal(object)
+    status = Signal(str)
+
+    def __init__(self, parent: QObject | None = None):
+        super().__init__(parent)
+        from app.tasks import TaskRunner
+
+        self.tasks = TaskRunner(self)
+        self.model: Model | None = None
+        self.deck_path: Path | None = None
+        self.setup_path: Path | None = None
+        self.setup_dict: dict[str, Any] = {}
+        self.setup: JointSetup | None = None
+        self.setup_problem: str | None = None
+        self.axes: JointAxes | None = None
+        self.poser: Poser | None = None
+        self.flexion: float = 0.0
+        self.coords: NDArray[np.float64] = np.zeros((0, 3))
+        self.smoothed = False
+        self._evaluator: QualityEvaluator | None = None
+        self._quality: QualityResult | None = None
+        self._initial_quality: QualityResult | None = None
+        self.ligaments: tuple[Ligament, ...] = ()
+        self.ligament_curve: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        # view state
+        self.colour_mode = "part"  # part | quality | stretch
+        self.metric = "jacobian"
+        self.threshold: float | None = None
+        self.hidden_parts: set[int] = set()
+        self.clip_enabled = False
+        self.clip_normal = "lateral"
+        self.clip_offset = 0.0
+        self.pick_target = ""
+        self._undo: list[dict[str, Any]] = []
+        self._redo: list[dict[str, Any]] = []
+        self._poser_stale = False
+        self.tasks.finished.connect(lambda _name: QTimer.singleShot(0, self.on_task_finished))
+
+    # ------------------------------------------------------------------ loading
+    def load(
+        self,
+        model: Model,
+        setup: Mapping[str, Any] | str | Path | None = None,
+        deck_path: str | Path | None = None,
+        setup_path: str | Path | None = None,
+    ) -> None:
+        """Make ``model`` (and its setup) current. Setup problems are kept, not raised.
+
+        A setup given as a path is read as JSON (a bad file raises :class:`SetupError`, and the
+        previous model stays).
+        """
+        if isinstance(setup, str | Path):
+            setup_path = Path(setup)
+            setup = read_setup_json(setup_path)
+        self.model = model
+        self.deck_path = None if deck_path is None else Path(deck_path)
+        self.setup_path = None if setup_path is None else Path(setup_path)
+        self.setup_dict = dict(setup) if setup is not None else default_setup_dict(model)
+        self.coords = np.array(model.coords, dtype=np.float64)
+        self.smoothed = False
+        self._evaluator = QualityEvaluator(model.blocks)
+        self._initial_quality = self._evaluator.evaluate(model.coords)
+        self._quality = self._initial_quality
+        self.poser = None
+        self.ligaments = ()
+        self.ligament_curve = None
+        self.hidden_parts = set()
+        self._undo.clear()
+        self._redo.clear()
+        self.flexion = 0.0
+        self.setup = None
+        self.axes = None
+        self._validate_setup()
+        if self.setup is not None:
+            self.hidden_parts = set(self.setup.parts_of("skin", "flesh"))
+        self.model_changed.emit()
+        self.setup_changed.emit()
+        self.coords_changed.emit()
+        self.rebuild_poser()
+
+    def open_deck(self, path: str | Path, setup_path: str | Path | None = None) -> None:
+        """Read a deck (and setup) in the worker thread; on success it becomes current."""
+        from kneegui.io.lsdyna import read_deck
+
+        path = Path(path)
+        setup_data = read_setup_json(setup_path) if setup_path is not None else None
+
+        def work(progress, cancelled):
+            progress(0.1, f"reading {path.name}")
+            model = read_deck(path)
+            progress(1.0, f"read {model.n_nodes} nodes, {model.n_elements} elements")
+            return model
+
+        def done(model):
+            self.load(model, setup_data, deck_path=path, setup_path=setup_path)
+            self.status.emit(f"opened {path}")
+
+        self._start("Opening deck", work, done)
+
+    def open_setup(self, path: str | Path) -> None:
+        """Read a setup file for the current model (a bad file raises; nothing changes then)."""
+        if self.model is None:
+            raise SetupError("open a deck first")
+        path = Path(path)
+        data = read_setup_json(path)
+        checked = load_setup(data, self.model)  # raises SetupError with the key
+        self._push_undo()
+        self.setup_path = path
+        self.setup_dict = checked.to_dict()
+        self._after_setup_edit()
+
+    def save_setup(self, path: str | Path) -> Path:
+        """Write the current setup dictionary (atomically)."""
+        from kneegui.setup import save_setup
+
+        out = save_setup(self.setup_dict, path)
+        self.setup_path = Path(out)
+        return Path(out)
+
+    # ------------------------------------------------------------------ setup and poser
+    def _validate_setup(self) -> None:
+        assert self.model is not None
+        try:
+            setup = load_setup(self.setup_dict, self.model)
+            axes = compute_joint_axes(self.model.coords, setup)
+        except (SetupError, GeometryError) as exc:
+            # keep the last valid setup and axes: the poser built from them still works
+            self.setup_problem = str(exc)
+            return
+        self.setup = setup
+        self.axes = axes
+        self.setup_problem = None
+
+    def rebuild_poser(self) -> None:
+        """Precompute the poser for the current valid setup in the worker thread."""
+        if self.model is None or self.setup is None or self.setup_problem is not None:
+            return
+        if self.tasks.busy:
+            self._poser_stale = True
+            return
+        model, setup = self.model, self.setup
+        self._poser_stale = False
+
+        def work(progress, cancelled):
+            poser = make_poser(model, setup, progress, cancelled)
+            ligaments = ligament_fibres(model, setup.roles.get("ligament", ()))
+            return poser, ligaments
+
+        def done(result):
+            if self.model is not model:
+                return
+            self.poser, self.ligaments = result
+            self.ligament_curve = None
+            self.poser_changed.emit()
+            self.set_flexion(
+                self.flexion if self.flexion else self.poser.initial_flexion, force=True
+            )
+            self.status.emit(
+                f"poser ready ({getattr(self.poser, 'kind', 'repositioner')}); initial flexion "
+                f"{self.poser.initial_flexion:.1f}°"
+            )
+
+        self._start("Preparing the repositioner", work, done)
+
+    def _after_setup_edit(self) -> None:
+        self._validate_setup()
+        self.setup_changed.emit()
+        self._emit_undo()
+        if self.setup_problem is None:
+            self.rebuild_poser()
+
+    # ------------------------------------------------------------------ roles
+    def part_role(self, pid: int) -> str | None:
+        """Role of a part in the setup dictionary (None if unassigned)."""
+        for role, pids in self.setup_dict.get("roles", {}).items():
+            if int(pid) in [int(p) for p in pids]:
+                return role
+        return None
+
+    def set_part_role(self, pid: int, role: str | None) -> None:
+        """Move a part to ``role`` (None: no role)."""
+        if role is not None and role not in ROLES:
+            raise SetupError(f"unknown role {role!r}", key="roles")
+        if self.part_role(pid) == role:
+            return
+        self._push_undo()
+        roles = {
+            r: [int(p) for p in v if int(p) != int(pid)]
+            for r, v in self.setup_dict.get("roles", {}).items()
+        }
+        if role is not None:
+            roles.setdefault(role, []).append(int(pid))
+            roles[role].sort()
+        self.setup_dict["roles"] = roles
+        self._after_setup_edit()
+
+    # ------------------------------------------------------------------ landmarks
+    def condyle_ids(self, key: str) -> list[int]:
+        """Node ids of a condyle set as in the setup dictionary."""
+        return [int(n) for n in self.setup_dict.get("landmarks", {}).get(key, [])]
+
+    def set_condyle_ids(self, key: str, ids: Iterable[int]) -> None:
+        """Replace a condyle set (one undo step)."""
+        if key not in CONDYLE_KEYS:
+            raise KeyError(key)
+        new = sorted({int(i) for i in ids})
+        if new == self.condyle_ids(key):
+            return
+        self._push_undo()
+        self.setup_dict.setdefault("landmarks", {})[key] = new
+        self._after_setup_edit()
+
+    def add_condyle_ids(self, key: str, ids: Iterable[int]) -> None:
+        """Add nodes to a condyle set (one undo step)."""
+        self.set_condyle_ids(key, [*self.condyle_ids(key), *ids])
+
+    def remove_condyle_ids(self, key: str, ids: Iterable[int]) -> None:
+        """Remove nodes from a condyle set (one undo step)."""
+        drop = {int(i) for i in ids}
+        self.set_condyle_ids(key, [i for i in self.condyle_ids(key) if i not in drop])
+
+    def set_axis_point(self, key: str, which: int, node_id: int) -> None:
+        """Set the proximal (0) or distal (1) point of an axis to a node (one undo step)."""
+        if key not in AXIS_KEYS or which not in (0, 1):
+            raise KeyError(f"{key}[{which}]")
+        points = list(self.setup_dict.setdefault("landmarks", {}).get(key, [None, None]))
+        while len(points) < 2:
+            points.append(None)
+        if points[which] == int(node_id):
+            return
+        self._push_undo()
+        points[which] = int(node_id)
+        self.setup_dict["landmarks"][key] = points
+        self._after_setup_edit()
+
+    def suggest_condyles(self) -> None:
+        """Fill both condyle sets with the engine's suggestion (one undo step)."""
+        from kneegui.setup import suggest_condyle_nodes
+
+        if self.model is None:
+            return
+        roles = self.setup_dict.get("roles", {})
+        lat, med = suggest_condyle_nodes(
+            self.model,
+            roles.get("femur", []),
+            self.setup_dict.get("side", "right"),
+            tibia_part_ids=roles.get("tibia", []) or None,
+            patella_part_ids=roles.get("patella", []) or None,
+        )
+        self._push_undo()
+        lm = self.setup_dict.setdefault("landmarks", {})
+        lm["lateral_condyle"] = [int(i) for i in lat]
+        lm["medial_condyle"] = [int(i) for i in med]
+        self._after_setup_edit()
+
+    def set_pick_target(self, target: str) -> None:
+        """``lateral_condyle``, ``medial_condyle``, ``lr_axis:0`` ... or '' to stop picking."""
+        if target == self.pick_target:
+            return
+        self.pick_target = target
+        self.pick_target_changed.emit(target)
+
+    def pick_nodes(self, ids: Iterable[int], remove: bool = False) -> None:
+        """Apply picked node ids to the current pick target (called by the viewport)."""
+        ids = [int(i) for i in ids]
+        if not ids or not self.pick_target:
+            return
+        target = self.pick_target
+        if target in CONDYLE_KEYS:
+            if remove:
+                self.remove_condyle_ids(target, ids)
+            else:
+                self.add_condyle_ids(target, ids)
+        else:
+            key, which = target.split(":")
+            self.set_axis_point(key, int(which), ids[0])
+
+    # ------------------------------------------------------------------ undo
+    @property
+    def can_undo(self) -> bool:
+        return bool(self._undo)
+
+    @property
+    def can_redo(self) -> bool:
+        return bool(self._redo)
+
+    def _push_undo(self) -> None:
+        self._undo.append(copy.deepcopy(self.setup_dict))
+        self._redo.clear()
+
+    def _emit_undo(self) -> None:
+        self.display_changed.emit("undo")
+
+    def undo(self) -> None:
+        """Undo the last role or landmark edit."""
+        if not self._undo:
+            return
+        self._redo.append(copy.deepcopy(self.setup_dict))
+        self.setup_dict = self._undo.pop()
+        self._after_setup_edit()
+
+    def redo(self) -> None:
+        """Redo the last undone edit."""
+        if not self._redo:
+            return
+        self._undo.append(copy.deepcopy(self.setup_dict))
+        self.setup_dict = self._redo.pop()
+        self._after_setup_edit()
+
+    # ------------------------------------------------------------------ pose
+    def set_flexion(self, degrees: float, force: bool = False) -> None:
+        """Re-pose the model at ``degrees`` through the precomputed poser."""
+        deg = float(np.clip(degrees, *FLEXION_RANGE))
+        if self.poser is None:
+            self.flexion = deg
+            return
+        if deg == self.flexion and not force and not self.smoothed:
+            return
+        self.flexion = deg
+        self.coords = self.poser.pose(deg)
+        self.smoothed = False
+        self._quality = None
+        self.coords_changed.emit()
+
+    def set_coords(self, coords: NDArray[np.float64], smoothed: bool = True) -> None:
+        """Replace the current coordinates (e.g. after smoothing)."""
+        self.coords = np.array(coords, dtype=np.float64)
+        self.smoothed = smoothed
+        self._quality = None
+        self.coords_changed.emit()
+
+    def posed_model(self) -> Model:
+        """The model at the current coordinates."""
+        assert self.model is not None
+        return self.model.with_coords(self.coords)
+
+    # ------------------------------------------------------------------ quality
+    def quality(self) -> QualityResult:
+        """Quality of the current pose (computed on demand, cached until the pose changes)."""
+        if self._quality is None:
+            assert self._evaluator is not None
+            self._quality = self._evaluator.evaluate(self.coords)
+        return self._quality
+
+    def element_values(self, metric: str) -> NDArray[np.float64]:
+        """One value per global cell (``model.blocks`` order); NaN for unmeasured types."""
+        assert self.model is not None
+        q = self.quality()
+        chunks = []
+        for etype, block in self.model.blocks.items():
+            if etype not in q:
+                chunks.append(np.full(len(block), np.nan))
+                continue
+            if metric == "volume_change":
+                v0 = self._initial_quality[etype].volume
+                v = q[etype].volume
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    chunks.append(np.where(v0 != 0, 100.0 * (v - v0) / np.abs(v0), np.nan))
+            else:
+                chunks.append(np.asarray(q[etype].metric(HEATMAP_METRICS[metric][1]), float))
+        return np.concatenate(chunks) if chunks else np.zeros(0)
+
+    def worst_elements(self, metric: str, count: int = 20) -> list[tuple[int, int, str, float]]:
+        """The ``count`` worst elements: ``(global cell, element id, part title, value)``."""
+        assert self.model is not None
+        values = self.element_values(metric)
+        low_bad = HEATMAP_METRICS[metric][2]
+        finite = np.flatnonzero(np.isfinite(values))
+        if not len(finite):
+            return []
+        key = values[finite] if low_bad else -np.abs(values[finite])
+        order = finite[np.argsort(key, kind="stable")[:count]]
+        ids = np.concatenate([b.ids for b in self.model.blocks.values()])
+        pids = np.concatenate([b.part_ids for b in self.model.blocks.values()])
+        out = []
+        for c in order.tolist():
+            pid = int(pids[c])
+            title = self.model.parts[pid].title if pid in self.model.parts else ""
+            out.append((c, int(ids[c]), f"{pid} {title}".strip(), float(values[c])))
+        return out
+
+    def ligament_stretch_values(self) -> NDArray[np.float64]:
+        """Fibre stretch per global cell (NaN outside ligaments)."""
+        assert self.model is not None
+        from app.scene import block_offsets
+
+        out = np.full(self.model.n_elements, np.nan)
+        offsets = block_offsets(self.model)
+        for lig in self.ligaments:
+            s = lig.element_stretch(self.coords)
+            start = 0
+            for etype, rows in zip(lig.element_types, lig.rows, strict=True):
+                out[offsets[etype] + rows] = s[start : start + len(rows)]
+                start += len(rows)
+        return out
+
+    # ------------------------------------------------------------------ view state
+    def set_colour_mode(self, mode: str) -> None:
+        if mode not in ("part", "quality", "stretch"):
+            raise ValueError(mode)
+        if mode != self.colour_mode:
+            self.colour_mode = mode
+            self.display_changed.emit("colour")
+
+    def set_metric(self, metric: str) -> None:
+        if metric not in HEATMAP_METRICS:
+            raise ValueError(metric)
+        if metric != self.metric:
+            self.metric = metric
+            self.threshold = None
+            self.display_changed.emit("colour")
+
+    def set_threshold(self, value: float | None) -> None:
+        self.threshold = value
+        self.display_changed.emit("threshold")
+
+    def set_part_visible(self, pid: int, visible: bool) -> None:
+        before = pid in self.hidden_parts
+        (self.hidden_parts.discard if visible else self.hidden_parts.add)(int(pid))
+        if before == visible:
+            self.display_changed.emit("visibility")
+
+    def set_clip(self, enabled: bool, normal: str | None = None, offset: float | None = None):
+        self.clip_enabled = bool(enabled)
+        if normal is not None:
+            self.clip_normal = normal
+        if offset is not None:
+            self.clip_offset = float(offset)
+        self.display_changed.emit("clip")
+
+    def knee_frame(self) -> dict[str, NDArray[np.float64]]:
+        """Knee centre and anatomical directions (from the axes, else the model's box)."""
+        if self.axes is not None:
+            a = self.axes
+            lateral = -a.sagittal_normal
+            return {
+                "center": np.asarray(a.knee_center),
+                "anterior": np.asarray(a.anterior),
+                "superior": np.asarray(a.superior),
+                "lateral": np.asarray(lateral),
+            }
+        box = self.model.bounding_box() if self.model is not None else np.zeros((2, 3))
+        return {
+            "center": box.mean(axis=0),
+            "anterior": np.array([1.0, 0, 0]),
+            "superior": np.array([0, 0, 1.0]),
+            "lateral": np.array([0, -1.0, 0]),
+        }
+
+    # ------------------------------------------------------------------ long tasks
+    def _start(self, name, work, done) -> bool:
+        def on_error(exc):
+            self.error.emit(exc)
+
+        def finished(result):
+            done(result)
+
+        started = self.tasks.start(name, work, finished, on_error)
+        if not started:
+            self.status.emit(f"busy with {self.tasks.current_name}; try again when it ends")
+        return started
+
+    def on_task_finished(self) -> None:
+        """Run a poser rebuild that was deferred while another task ran."""
+        if self._poser_stale:
+            self.rebuild_poser()
+
+    def compute_ligament_curve(self, step: float = 5.0) -> bool:
+        """Each ligament's length from -5° to 140° (worker thread)."""
+        if self.poser is None or not self.ligaments:
+            return False
+        poser, ligaments = self.poser, self.ligaments
+        angles = np.arange(FLEXION_RANGE[0], FLEXION_RANGE[1] + 1e-9, step)
+
+        def work(progress, cancelled):
+            return angles, length_curve(ligaments, poser.pose, angles, cancelled, progress)
+
+        def done(result):
+            self.ligament_curve = result
+            self.ligaments_changed.emit()
+
+        return self._start("Ligament lengths", work, done)
+
+    def smooth(self) -> bool:
+        """Smooth the current pose in the worker thread (the result becomes current)."""
+        if self.model is None:
+            return False
+        from app.smoothing import smooth_current
+
+        model, coords, setup = self.model, self.coords.copy(), self.setup
+
+        def work(progress, cancelled):
+            return smooth_current(model, coords, setup, progress, cancelled)
+
+        def done(result):
+            self.set_coords(result.coords, smoothed=True)
+            self.status.emit(result.message)
+
+        return self._start("Smoothing", work, done)
+
+    def export(self, path: str | Path, force: bool = False, flatten: bool = False) -> bool:
+        """Write the posed deck (worker thread, atomic).
+
+        Raises
+        ------
+        ExportBlocked
+            If the current pose has inverted elements and ``force`` is false.
+        """
+        if self.model is None:
+            raise KneeguiError("nothing to export")
+        n_inv = self.quality().n_inverted
+        if n_inv and not force:
+            raise ExportBlocked(
+                f"{n_inv} inverted element(s) at {self.flexion:.1f}°: smooth first, or force "
+                "the export"
+            )
+        posed = self.posed_model()
+        target = Path(path)
+
+        def work(progress, cancelled):
+            from kneegui.io.lsdyna import write_deck, write_model
+
+            progress(0.2, f"writing {target.name}")
+            if posed.source is not None:
+                write_deck(posed, target, flatten=flatten)
+            else:
+                write_model(posed, target, title=f"kneegui posed at {self.flexion:.1f} deg")
+            progress(1.0, "written")
+            return target
+
+        def done(result):
+            self.status.emit(f"exported {result} ({n_inv} inverted)")
+
+        return self._start("Exporting", work, done)
+
+
+def read_setup_json(path: str | Path) -> dict[str, Any]:
+    """The setup file as a dictionary (SetupError with the file and line on bad JSON)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise SetupError(f"cannot read: {exc.strerror or exc}", path=p) from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise SetupError(f"line {exc.lineno}: invalid JSON ({exc.msg})", path=p) from None
+    if not isinstance(data, dict):
+        raise SetupError("the file must hold a JSON object", path=p)
+    return data
+
+
+def default_setup_dict(model: Model, side: str = "right") -> dict[str, Any]:
+    """A starting setup for a deck without one: the engine's suggestion, else roles only."""
+    from kneegui.setup import suggest_roles, suggest_setup
+
+    try:
+        return suggest_setup(model, side)
+    except KneeguiError:
+        pass
+    roles = suggest_roles(model, side=side)
+    return {
+        "format": "kneegui-setup",
+        "version": 1,
+        "side": side,
+        "roles": {r: list(v) for r, v in roles.items()},
+        "landmarks": {
+            "lateral_condyle": [],
+            "medial_condyle": [],
+            "lr_axis": [None, None],
+            "femur_axis": [None, None],
+            "tibia_axis": [None, None],
+        },
+    }
