@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import GeometryError
-from kneegui.geometry.circle_fit import CircleFit, fit_circle_2d
+from kneegui.geometry.circle_fit import CircleFit, fit_outer_profile
 from kneegui.geometry.transforms import unit
 from kneegui.resources import RESOURCES_DIR
 
@@ -274,22 +274,24 @@ class _SagittalFrame:
     origin: NDArray[np.float64]
     fits: tuple[CircleFit, CircleFit]
     centres: tuple[NDArray[np.float64], NDArray[np.float64]]
+    used: tuple[int, int]
 
 
 def _fit_condyles(pos: _LandmarkPositions, f, n, anterior, origin):
     basis = np.stack([anterior, f, n])  # rows: anterior, superior, lateral->medial
-    fits, centres = [], []
+    fits, centres, used_counts = [], [], []
     for name, pts in (("lateral", pos.lateral), ("medial", pos.medial)):
         local = (pts - origin) @ basis.T
         try:
-            fit = fit_circle_2d(local[:, :2])
+            fit, used = fit_outer_profile(local[:, :2])
         except GeometryError as exc:
             raise GeometryError(f"{name} condyle: {exc}") from None
         fits.append(fit)
+        used_counts.append(int(used.sum()))
         centres.append(
-            origin + fit.center[0] * anterior + fit.center[1] * f + local[:, 2].mean() * n
+            origin + fit.center[0] * anterior + fit.center[1] * f + local[used, 2].mean() * n
         )
-    return fits, centres
+    return fits, centres, used_counts
 
 
 def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
@@ -300,7 +302,7 @@ def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
     origin = 0.5 * (pos.lateral.mean(axis=0) + pos.medial.mean(axis=0))
     for i in range(SAGITTAL_REFINEMENTS + 1):
         anterior = unit(np.cross(side_sign * n, f), "anterior direction")
-        fits, centres = _fit_condyles(pos, f, n, anterior, origin)
+        fits, centres, used = _fit_condyles(pos, f, n, anterior, origin)
         if i == SAGITTAL_REFINEMENTS:
             break
         try:
@@ -313,9 +315,11 @@ def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
         n = n_new
         if converged:
             anterior = unit(np.cross(side_sign * n, f), "anterior direction")
-            fits, centres = _fit_condyles(pos, f, n, anterior, origin)
+            fits, centres, used = _fit_condyles(pos, f, n, anterior, origin)
             break
-    return _SagittalFrame(f, n, anterior, origin, (fits[0], fits[1]), (centres[0], centres[1]))
+    return _SagittalFrame(
+        f, n, anterior, origin, (fits[0], fits[1]), (centres[0], centres[1]), (used[0], used[1])
+    )
 
 
 def compute_joint_axes(model_coords: ArrayLike, setup: JointSetup) -> JointAxes:
@@ -349,6 +353,15 @@ def compute_joint_axes(model_coords: ArrayLike, setup: JointSetup) -> JointAxes:
 
     limits = condyle_fit_limits()
     warnings = []
+    for name, count, total in (
+        ("lateral", frame.used[0], len(pos.lateral)),
+        ("medial", frame.used[1], len(pos.medial)),
+    ):
+        if count < total:
+            warnings.append(
+                f"{name} condyle: fitted the outer boundary of the projected nodes "
+                f"({count} of {total} nodes; the others lie inside the circle)"
+            )
     for name, fit in (("lateral", fits[0]), ("medial", fits[1])):
         if not limits["radius_min"] <= fit.radius <= limits["radius_max"]:
             warnings.append(

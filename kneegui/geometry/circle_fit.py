@@ -128,3 +128,64 @@ def fit_circle_2d(points2d: ArrayLike) -> CircleFit:
         rms=float(np.sqrt(np.mean(res**2))),
         arc_span_deg=arc_span_deg(pts, centre),
     )
+
+
+def fit_outer_profile(
+    points2d: ArrayLike,
+    rms_trigger: float = 0.5,
+    tolerance: float = 0.25,
+    max_iterations: int = 50,
+) -> tuple[CircleFit, NDArray[np.bool_]]:
+    """Circle through the outer boundary of a projected point cloud, when that is what fits.
+
+    A condyle node set picked as a surface patch (not only its sagittal outline) projects to a
+    filled crescent: the nodes on the condyle's rounded sides fall inside the circle and pull a
+    plain fit in. The paper fits the circle to "the boundary nodes". This first fits all points;
+    if their RMS exceeds ``rms_trigger``, it drops the points more than ``tolerance`` inside the
+    current circle and refits, until the kept set no longer changes. The outer fit is used only
+    if its RMS is within ``tolerance`` (a clean outline, not the outer half of a noisy cloud) and
+    at most half the plain fit's, it keeps at least 10 % of the points (and 5) and half the arc;
+    otherwise the plain fit is returned.
+
+    Parameters
+    ----------
+    points2d : (M, 2) array_like of float
+        Projected points (mm).
+    rms_trigger, tolerance : float
+        In the units of the points (mm).
+    max_iterations : int
+        Bound on the refits.
+
+    Returns
+    -------
+    fit : CircleFit
+        The fit used.
+    used : (M,) ndarray of bool
+        Which points it was fitted to.
+    """
+    pts = np.asarray(points2d, dtype=np.float64)
+    full = fit_circle_2d(pts)
+    everything = np.ones(len(pts), dtype=bool)
+    if full.rms <= rms_trigger:
+        return full, everything
+    fit, keep = full, everything
+    min_kept = max(5, int(np.ceil(0.1 * len(pts))))
+    for _ in range(max_iterations):
+        new_keep = fit.residuals(pts) >= -tolerance
+        if new_keep.sum() < min_kept:
+            return full, everything
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        try:
+            fit = fit_circle_2d(pts[keep])
+        except GeometryError:
+            return full, everything
+    # a clean outline (not just the outer half of a noisy cloud) and a real improvement
+    if (
+        fit.rms <= tolerance
+        and fit.rms <= 0.5 * full.rms
+        and fit.arc_span_deg >= 0.5 * full.arc_span_deg
+    ):
+        return fit, keep
+    return full, everything

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from kneegui.errors import GeometryError
 from kneegui.geometry import fit_circle_2d
-from kneegui.geometry.circle_fit import _algebraic_start
+from kneegui.geometry.circle_fit import _algebraic_start, fit_outer_profile
 
 
 def arc(center, radius, start_deg, stop_deg, n):
@@ -88,3 +88,33 @@ def test_input_not_mutated():
     before = pts.copy()
     fit_circle_2d(pts)
     np.testing.assert_array_equal(pts, before)
+
+
+def _crescent(seed, noise=0.0):
+    """Boundary nodes on a 20.5 mm arc plus 'side' nodes projected inside it (a picked patch)."""
+    rng = np.random.default_rng(seed)
+    t = np.radians(rng.uniform(180.0, 300.0, 400))
+    r = np.concatenate([np.full(150, 20.5), rng.uniform(14.0, 20.5, 250)])
+    pts = np.column_stack([5.0 + r * np.cos(t), 7.0 + r * np.sin(t)])
+    return pts + rng.normal(0.0, noise, pts.shape)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("noise", [0.0, 0.1])
+def test_outer_profile_of_a_patch(seed, noise):
+    pts = _crescent(seed, noise)
+    plain = fit_circle_2d(pts)
+    assert plain.rms > 1.5  # the side nodes spoil a plain fit
+    fit, used = fit_outer_profile(pts)
+    assert fit.radius == pytest.approx(20.5, abs=0.1)
+    np.testing.assert_allclose(fit.center, [5.0, 7.0], atol=0.15)
+    assert 0.3 * len(pts) < used.sum() < 0.5 * len(pts)
+
+
+@pytest.mark.parametrize("noise", [0.05, 0.3, 0.7, 2.0])
+def test_outer_profile_keeps_every_point_of_a_noisy_arc(noise):
+    rng = np.random.default_rng(3)
+    pts = arc((0.0, 0.0), 20.5, 180.0, 300.0, 400) + rng.normal(0.0, noise, (400, 2))
+    fit, used = fit_outer_profile(pts)
+    assert used.all()
+    assert fit.radius == fit_circle_2d(pts).radius
