@@ -1,0 +1,124 @@
+"""``kneegui pose``: deck in, posed deck(s) out, with a quality report per angle."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from kneegui.errors import SetupError
+from kneegui.io.atomic import atomic_write_text
+from kneegui.io.lsdyna import read_deck, write_deck
+from kneegui.reposition import METHODS, Repositioner, RepositionOptions
+from kneegui.reposition.pipeline import pose_model
+from kneegui.setup import load_setup
+
+NAME = "pose"
+HELP = "Re-pose the knee of a deck to one or more flexion angles and write the posed deck(s)."
+
+EXIT_QUALITY_GATE = 3
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model", help="LS-DYNA keyword deck")
+    parser.add_argument("--setup", required=True, help="joint setup JSON (docs/setup-format.md)")
+    parser.add_argument(
+        "--flexion",
+        required=True,
+        type=float,
+        nargs="+",
+        metavar="DEG",
+        help="target flexion angle(s), degrees",
+    )
+    parser.add_argument(
+        "--out",
+        required=True,
+        help="output deck (one angle) or output folder (several angles: "
+        "OUT/flex_<deg>/<deck name>)",
+    )
+    parser.add_argument("--report", help="report JSON path (several angles: _<deg> is added)")
+    parser.add_argument("--no-smooth", action="store_true", help="skip mesh smoothing")
+    parser.add_argument(
+        "--force", action="store_true", help="write the deck even if it fails the quality gate"
+    )
+    parser.add_argument("--flatten", action="store_true", help="inline every *INCLUDE")
+    parser.add_argument("--method", choices=METHODS, help="soft-tissue method (default: best)")
+
+
+def _angle_tag(deg: float) -> str:
+    return f"{deg:g}".replace("-", "m").replace(".", "p")
+
+
+def run(args: argparse.Namespace) -> int:
+    t = time.perf_counter()
+    model = read_deck(args.model)
+    t_read = time.perf_counter() - t
+    t = time.perf_counter()
+    setup = load_setup(args.setup, model)
+    options = RepositionOptions(method=args.method) if args.method else RepositionOptions()
+    t_setup = time.perf_counter() - t
+    t = time.perf_counter()
+    repositioner = Repositioner(model, setup, options)
+    t_pre = time.perf_counter() - t
+    deck_name = Path(args.model).name
+    several = len(args.flexion) > 1
+    for deg in args.flexion:
+        repositioner.bone_pose(deg)  # validates the angle before any work or output
+    jobs = []
+    for deg in args.flexion:
+        if several:
+            folder = Path(args.out) / f"flex_{_angle_tag(deg)}"
+            out = folder / deck_name
+            report_path = (
+                Path(args.report).with_name(
+                    f"{Path(args.report).stem}_{_angle_tag(deg)}{Path(args.report).suffix}"
+                )
+                if args.report
+                else folder / "report.json"
+            )
+        else:
+            out = Path(args.out)
+            if out.is_dir():
+                raise SetupError(
+                    f"--out {out} is a folder; give the output deck's file name", key="--out"
+                )
+            report_path = Path(args.report) if args.report else None
+        jobs.append((deg, out, report_path))
+    status = 0
+    for deg, out, report_path in jobs:
+        posed = pose_model(repositioner, deg, smooth=not args.no_smooth)
+        report = posed.report
+        report["timings_s"].update(
+            {
+                "read": t_read,
+                "setup": t_setup,
+                "precompute": t_pre,
+                **{f"precompute_{k}": v for k, v in repositioner.timings_s.items()},
+            }
+        )
+        report["model"] = str(Path(args.model).resolve())
+        written = []
+        if posed.passes_gate or args.force:
+            t = time.perf_counter()
+            written = write_deck(posed.model, out, flatten=args.flatten)
+            report["timings_s"]["write"] = time.perf_counter() - t
+        report["written"] = [str(p) for p in written]
+        if report_path is not None:
+            atomic_write_text(report_path, json.dumps(report, indent=2) + "\n")
+        q = report["quality"]
+        final = q.get("smoothed", q["posed"])
+        line = (
+            f"{deg:g} deg: achieved {report['achieved_flexion']:.2f} deg, worst Jacobian "
+            f"{final['jacobian']['worst']:.3f} (initial {q['initial']['jacobian']['worst']:.3f})"
+            f", inverted {final['inverted']}"
+        )
+        if written:
+            print(f"{line} -> {written[0]}")
+        else:
+            print(
+                f"{line}: fails the quality gate ({'; '.join(posed.gate_reasons)}); "
+                "not written (use --force to write it anyway)"
+            )
+            status = EXIT_QUALITY_GATE
+    return status

@@ -1,0 +1,156 @@
+"""Deck-to-deck posing: pose, measure, smooth, gate and report (what ``kneegui pose`` runs)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from kneegui.model import SOLID_TYPES, Model
+from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
+from kneegui.quality.metrics import QualityResult
+from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner
+
+ProgressCallback = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class PosedModel:
+    """A posed (and possibly smoothed) model with its report."""
+
+    model: Model
+    report: dict[str, Any]
+    gate_reasons: list[str]
+
+    @property
+    def passes_gate(self) -> bool:
+        """True when the quality gate found nothing wrong."""
+        return not self.gate_reasons
+
+
+def _stats(model: Model, result: QualityResult) -> dict[str, Any]:
+    return summarize_quality(model, result)["model"]
+
+
+def _volume_change(
+    model: Model, result: QualityResult, initial: QualityResult, soft_parts: set[int]
+) -> dict[str, Any]:
+    """Largest element volume change (all solids) and total change of the soft-tissue solids."""
+    max_pct, max_id, soft_now, soft_before = 0.0, None, 0.0, 0.0
+    for etype in SOLID_TYPES:
+        if etype not in result or etype not in initial:
+            continue
+        v, v0 = result[etype].volume, initial[etype].volume
+        block = model.blocks[etype]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pct = np.where(np.abs(v0) > 0, 100.0 * (v - v0) / np.abs(v0), 0.0)
+        if len(pct):
+            k = int(np.argmax(np.abs(pct)))
+            if abs(pct[k]) > abs(max_pct):
+                max_pct, max_id = float(pct[k]), int(block.ids[result[etype].rows[k]])
+        soft = np.isin(block.part_ids[result[etype].rows], list(soft_parts))
+        soft_now += float(v[soft].sum())
+        soft_before += float(v0[soft].sum())
+    total = 100.0 * (soft_now - soft_before) / soft_before if soft_before else None
+    return {"max_element_pct": max_pct, "max_element_id": max_id, "soft_tissue_total_pct": total}
+
+
+def pose_model(
+    repositioner: Repositioner,
+    flexion_deg: float,
+    *,
+    smooth: bool = True,
+    progress: ProgressCallback | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> PosedModel:
+    """Pose the model, check its quality, smooth what degraded, and report.
+
+    Parameters
+    ----------
+    repositioner : Repositioner
+        Precomputed for the model and setup.
+    flexion_deg : float
+        Target flexion (degrees).
+    smooth : bool
+        Run the connectivity-preserving smoother on degraded soft-tissue elements.
+    progress, cancel : callable, optional
+        ``progress(fraction, message)``; ``cancel()`` returns True to stop (raises
+        :class:`kneegui.errors.Cancelled`).
+
+    Returns
+    -------
+    PosedModel
+        The model with new coordinates (ids and connectivity unchanged) and the report: initial /
+        target / achieved flexion, quality (initial, posed, smoothed), volume change, gate,
+        timings.
+    """
+    report_progress = progress or (lambda fraction, message: None)
+    model, setup = repositioner.model, repositioner.setup
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    initial_q = compute_quality(model.coords, model.blocks)
+    timings["quality_initial"] = time.perf_counter() - t
+    report_progress(0.05, "posing")
+    result = repositioner.pose_detailed(flexion_deg)
+    timings["pose"] = result.timings_s["total"]
+    posed = model.with_coords(result.coords)
+    t = time.perf_counter()
+    posed_q = compute_quality(posed.coords, posed.blocks)
+    timings["quality_posed"] = time.perf_counter() - t
+    soft_parts = set(setup.parts_of(*SOFT_ROLES))
+    quality: dict[str, Any] = {"initial": _stats(model, initial_q), "posed": _stats(posed, posed_q)}
+    final, final_q = posed, posed_q
+    smoothing = None
+    if smooth:
+        from kneegui.smoothing.pipeline import smooth_posed_model
+
+        def smoothing_progress(fraction: float, message: str) -> None:
+            report_progress(0.1 + 0.85 * fraction, message)
+
+        t = time.perf_counter()
+        fixed_parts = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
+        fixed_parts |= set(setup.unassigned_parts)
+        movable = soft_parts - set(setup.parts_of("skin"))
+        final, smooth_report = smooth_posed_model(
+            posed,
+            sorted(movable),
+            sorted(fixed_parts),
+            initial_q,
+            progress=smoothing_progress,
+            cancel=cancel,
+        )
+        timings["smoothing"] = time.perf_counter() - t
+        final_q = compute_quality(final.coords, final.blocks)
+        quality["smoothed"] = _stats(final, final_q)
+        smoothing = smooth_report.to_dict()
+    summary = summarize_quality(final, final_q, initial=initial_q)
+    reasons = quality_gate(summary)
+    report = {
+        "method": repositioner.options.method,
+        "initial_flexion": repositioner.initial_flexion,
+        "target_flexion": float(flexion_deg),
+        "achieved_flexion": result.achieved_flexion_deg,
+        "quality": quality,
+        "volume_change": _volume_change(final, final_q, initial_q, soft_parts),
+        "gate": {"passed": not reasons, "reasons": reasons},
+        "smoothing": smoothing,
+        "skin": None
+        if result.skin is None
+        else {
+            "half_angle_deg": result.skin.half_angle_deg,
+            "scale_capped_nodes": result.skin.scaled_capped,
+            "penetrations_fixed": result.skin.penetrations_fixed,
+        },
+        "bones": {
+            "fe_rotation_deg": result.bone_pose.fe_rotation_deg,
+            "tibial_rotation_deg": result.bone_pose.tibial_rotation_deg,
+            "patellar_flexion_deg": result.bone_pose.patellar_flexion_deg,
+            "patellar_tilt_deg": result.bone_pose.patellar_tilt_deg,
+        },
+        "timings_s": {**{f"pose_{k}": v for k, v in result.timings_s.items()}, **timings},
+    }
+    report_progress(1.0, "done")
+    return PosedModel(final, jsonable(report), reasons)

@@ -1,0 +1,378 @@
+"""The repositioner: precompute once per setup, then pose the whole model at any flexion, cheaply.
+
+Methods (``RepositionOptions.method``), compared in docs/repositioning.md:
+
+``"paper"``
+    Jani et al. 2012 as reconstructed in ALGORITHM.md: bones rigid, skin by contours, flesh and
+    capsule by barycentric coordinates in a Delaunay tetrahedralisation of bone-surface + skin
+    nodes, ligament / meniscus / tendon nodes by a tetrahedralisation of the skin nodes only.
+``"blend"``
+    Every soft-tissue node follows a blend of the bones' rigid motions with harmonic weights
+    (see :mod:`kneegui.reposition.rigid_blend`); no tetrahedron spans the joint, so nothing shears.
+``"hybrid"``
+    Skin by contours as in the paper; every other soft node by the rigid blend plus the
+    barycentric interpolation of how far the contour skin departs from the blend.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.errors import Cancelled, SetupError
+from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
+from kneegui.kinematics.posing import BonePose, solve_bone_pose
+from kneegui.model import Model
+from kneegui.reposition.embedding import Embedding, embed_nodes
+from kneegui.reposition.rigid_blend import (
+    exp_twists_apply,
+    harmonic_weights,
+    log_rigid,
+    mesh_edges,
+)
+from kneegui.reposition.skin_contours import (
+    WEIGHT_SHAPES,
+    SkinContours,
+    SkinPoseReport,
+    build_skin_contours,
+    pose_skin,
+)
+from kneegui.setup.condyles import surface_node_indices
+from kneegui.setup.format import JointSetup
+
+SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
+#: Tissues the paper maps to the skin contours only.
+BAND_ROLES = ("ligament", "meniscus", "tendon")
+METHODS = ("paper", "blend", "hybrid")
+SEGMENTS = ("femur", "tibia", "patella", "fixed")
+
+#: Supported target flexion range (degrees).
+FLEXION_RANGE = (-10.0, 150.0)
+
+ProgressCallback = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class RepositionOptions:
+    """Tunable choices of the repositioner (all have measured defaults).
+
+    Attributes
+    ----------
+    method : str
+        ``"paper"``, ``"blend"`` or ``"hybrid"``.
+    zone_factor : float
+        Parallelizing zone length as a multiple of the skin radius at the joint.
+    weight_shape : str
+        Parallelizing weight: ``"linear"`` (the paper), ``"cosine"`` or ``"smoothstep"``.
+    max_scale : float
+        Cap of the volume-preserving scale factor of a skin point.
+    clearance_fraction : float
+        A skin node closer to a bone than this fraction of its initial clearance is pushed out.
+    regularisation : float
+        Pull of the harmonic weights towards the distance prior.
+    """
+
+    method: str = "blend"
+    zone_factor: float = 2.0
+    weight_shape: str = "cosine"
+    max_scale: float = 2.0
+    clearance_fraction: float = 0.5
+    regularisation: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise SetupError(
+                f"unknown method {self.method!r}; choose one of {METHODS}", key="method"
+            )
+        if self.weight_shape not in WEIGHT_SHAPES:
+            raise SetupError(
+                f"unknown weight shape {self.weight_shape!r}; choose one of {WEIGHT_SHAPES}",
+                key="weight_shape",
+            )
+        if not (self.zone_factor > 0 and self.max_scale >= 1 and 0 <= self.clearance_fraction < 1):
+            raise SetupError(
+                "zone_factor > 0, max_scale >= 1 and 0 <= clearance_fraction < 1 are required",
+                key="options",
+            )
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """One pose: all node coordinates and what was done to get them."""
+
+    coords: NDArray[np.float64]
+    target_flexion_deg: float
+    achieved_flexion_deg: float
+    bone_pose: BonePose
+    skin: SkinPoseReport | None
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class NodeGroups:
+    """How every node of the model is moved."""
+
+    segment: dict[str, NDArray[np.int64]]  # rigid: femur, tibia, patella, fixed
+    skin: NDArray[np.int64]
+    band: NDArray[np.int64]  # ligament, meniscus, tendon
+    flesh: NDArray[np.int64]  # flesh, capsule and any other soft node
+    bone_surface: NDArray[np.int64]
+
+    @property
+    def soft(self) -> NDArray[np.int64]:
+        """All soft-tissue nodes that move by mapping."""
+        return np.concatenate([self.skin, self.band, self.flesh])
+
+
+def classify_nodes(model: Model, setup: JointSetup) -> NodeGroups:
+    """Split the model's nodes into rigid groups and soft-tissue groups.
+
+    Bone nodes move with their bone (a soft-tissue node shared with a bone, e.g. a ligament's
+    attachment, is a bone node). Nodes of ``fixed`` or unassigned parts stay where they are.
+    """
+    n = model.n_nodes
+    taken = np.zeros(n, dtype=bool)
+    segment: dict[str, NDArray[np.int64]] = {}
+    for name in ("femur", "tibia", "patella"):
+        idx = np.asarray(setup.segment_nodes[name], dtype=np.int64)
+        idx = idx[~taken[idx]]
+        taken[idx] = True
+        segment[name] = idx
+    fixed_parts = list(setup.roles["fixed"]) + list(setup.unassigned_parts)
+    fixed = model.part_node_indices(fixed_parts)
+    fixed = fixed[~taken[fixed]]
+    taken[fixed] = True
+    segment["fixed"] = fixed
+
+    def soft_of(*roles: str) -> NDArray[np.int64]:
+        idx = model.part_node_indices(setup.parts_of(*roles))
+        return idx[~taken[idx]]
+
+    skin = soft_of("skin")
+    taken[skin] = True
+    band = soft_of(*BAND_ROLES)
+    taken[band] = True
+    flesh = soft_of("flesh", "capsule")
+    taken[flesh] = True
+    bone_parts = setup.parts_of("femur", "tibia", "fibula", "patella")
+    surface = surface_node_indices(model, bone_parts)
+    return NodeGroups(segment, skin, band, flesh, surface)
+
+
+class Repositioner:
+    """Re-pose a model's knee: precompute in the constructor, then :meth:`pose` per angle.
+
+    Parameters
+    ----------
+    model : Model
+        The model in its initial pose.
+    setup : JointSetup
+        Validated setup of that model (:func:`kneegui.setup.load_setup`).
+    options : RepositionOptions, optional
+        Method and parameters (default: the measured best, see docs/repositioning.md).
+    progress : callable, optional
+        ``progress(fraction, message)`` during the precompute.
+    cancel : callable, optional
+        Returns True to abandon the precompute (raises :class:`kneegui.errors.Cancelled`).
+
+    Attributes
+    ----------
+    axes : JointAxes
+        Axes of the initial pose.
+    initial_flexion : float
+        Measured flexion of the initial pose (degrees).
+    groups : NodeGroups
+        How every node moves.
+    timings_s : dict
+        Seconds spent in each precompute stage.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        setup: JointSetup,
+        options: RepositionOptions | None = None,
+        progress: ProgressCallback | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> None:
+        if setup.n_nodes != model.n_nodes:
+            raise SetupError(
+                f"the setup was validated on a model with {setup.n_nodes} nodes, this one has "
+                f"{model.n_nodes}",
+                key="model",
+            )
+        self.model = model
+        self.setup = setup
+        self.options = options or RepositionOptions()
+        self.timings_s: dict[str, float] = {}
+        self._progress = progress or (lambda fraction, message: None)
+        self._cancel = cancel or (lambda: False)
+        coords = model.coords
+        t = self._stage("axes", 0.0)
+        self.axes: JointAxes = compute_joint_axes(coords, setup)
+        self.initial_flexion = float(self.axes.initial_flexion_deg)
+        self._end("axes", t)
+        t = self._stage("node groups", 0.1)
+        self.groups = classify_nodes(model, setup)
+        self._end("node groups", t)
+        method = self.options.method
+        self.contours: SkinContours | None = None
+        self._flesh_embedding: Embedding | None = None
+        self._band_embedding: Embedding | None = None
+        self._weights: NDArray[np.float64] | None = None
+        if method in ("paper", "hybrid"):
+            if len(self.groups.skin) < 4:
+                raise SetupError(
+                    "the contour methods need skin nodes: give the skin parts the "
+                    "'skin' role, or use method 'blend'",
+                    key="roles.skin",
+                )
+            t = self._stage("skin contours", 0.2)
+            self.contours = build_skin_contours(
+                coords,
+                self.groups.skin,
+                self.axes.knee_center,
+                self.axes.superior,
+                self.axes.tibia_axis.direction,
+                setup.skin_contours,
+                self.options.zone_factor,
+                self.groups.bone_surface,
+            )
+            self._end("skin contours", t)
+        if method in ("blend", "hybrid"):
+            t = self._stage("harmonic weights", 0.4)
+            self._weights = self._harmonic_weights()
+            self._end("harmonic weights", t)
+        if method in ("paper", "hybrid"):
+            t = self._stage("delaunay embedding", 0.7)
+            control = np.concatenate(
+                [self.groups.bone_surface, self.groups.skin, self._fixed_surface()]
+            )
+            embedded = (
+                self.groups.flesh
+                if method == "paper"
+                else np.concatenate([self.groups.flesh, self.groups.band])
+            )
+            self._flesh_embedding = embed_nodes(coords, control, embedded)
+            if method == "paper" and len(self.groups.band):
+                self._band_embedding = embed_nodes(coords, self.groups.skin, self.groups.band)
+            self._end("delaunay embedding", t)
+        self._progress(1.0, "ready")
+
+    # ---------------------------------------------------------------------- precompute
+    def _stage(self, name: str, fraction: float) -> float:
+        if self._cancel():
+            raise Cancelled(f"precompute cancelled before {name}")
+        self._progress(fraction, name)
+        return time.perf_counter()
+
+    def _end(self, name: str, t0: float) -> None:
+        self.timings_s[name] = time.perf_counter() - t0
+
+    def _fixed_surface(self) -> NDArray[np.int64]:
+        return self.groups.segment["fixed"]
+
+    def _harmonic_weights(self) -> NDArray[np.float64]:
+        model, groups = self.model, self.groups
+        soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
+        masks = {etype: np.isin(b.part_ids, soft_parts) for etype, b in model.blocks.items()}
+        edges = mesh_edges(model.blocks, masks)
+        anchors = [groups.segment[s] for s in SEGMENTS]
+        surfaces = [
+            np.intersect1d(groups.segment[s], groups.bone_surface)
+            if s != "fixed"
+            else groups.segment[s]
+            for s in SEGMENTS
+        ]
+        surfaces = [srf if len(srf) else anc for srf, anc in zip(surfaces, anchors, strict=True)]
+        return harmonic_weights(
+            model.n_nodes,
+            edges,
+            groups.soft,
+            anchors,
+            model.coords,
+            surfaces,
+            self.options.regularisation,
+        )
+
+    # ---------------------------------------------------------------------- posing
+    def bone_pose(self, flexion_deg: float) -> BonePose:
+        """Rigid bone transforms for ``flexion_deg`` (see :func:`solve_bone_pose`)."""
+        lo, hi = FLEXION_RANGE
+        if not np.isfinite(flexion_deg) or not lo <= flexion_deg <= hi:
+            raise SetupError(
+                f"target flexion {flexion_deg!r} deg is outside the supported "
+                f"range {lo:g} to {hi:g} deg",
+                key="flexion",
+            )
+        return solve_bone_pose(self.axes, self.setup, float(flexion_deg))
+
+    def pose(self, flexion_deg: float) -> NDArray[np.float64]:
+        """All node coordinates (N, 3) at ``flexion_deg`` (a new array)."""
+        return self.pose_detailed(flexion_deg).coords
+
+    def pose_detailed(self, flexion_deg: float) -> PoseResult:
+        """All node coordinates at ``flexion_deg``, with the bone pose, skin report and timings."""
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        bone = self.bone_pose(flexion_deg)
+        tr = bone.transforms
+        coords0 = self.model.coords
+        out = coords0.copy()
+        for name in ("femur", "tibia", "patella"):
+            idx = self.groups.segment[name]
+            if len(idx):
+                out[idx] = tr[name].apply(coords0[idx])
+        t1 = time.perf_counter()
+        timings["bones"] = t1 - t0
+        skin_report = None
+        method = self.options.method
+        g = self.groups
+        if method in ("blend", "hybrid"):
+            twists = np.stack([log_rigid(tr[s]) if s != "fixed" else np.zeros(6) for s in SEGMENTS])
+            soft = g.soft
+            out[soft] = exp_twists_apply(self._weights @ twists, coords0[soft])
+        t2 = time.perf_counter()
+        timings["blend"] = t2 - t1
+        if method in ("paper", "hybrid"):
+            skin_xyz, skin_report = pose_skin(
+                self.contours,
+                coords0,
+                self.axes.knee_center,
+                self.axes.superior,
+                self.axes.tibia_axis.direction,
+                self.axes.fe_axis.direction,
+                tr["femur"],
+                tr["tibia"],
+                self.options.weight_shape,
+                self.options.max_scale,
+                self.options.clearance_fraction,
+                out[g.bone_surface],
+            )
+            t3 = time.perf_counter()
+            timings["skin"] = t3 - t2
+            emb = self._flesh_embedding
+            if method == "paper":
+                out[g.skin] = skin_xyz
+                out[emb.nodes] = emb.apply(out[emb.control])
+                if self._band_embedding is not None:
+                    be = self._band_embedding
+                    out[be.nodes] = be.apply(out[be.control])
+            else:
+                residual = np.zeros_like(out)
+                residual[g.skin] = skin_xyz - out[g.skin]
+                out[g.skin] = skin_xyz
+                out[emb.nodes] += emb.apply(residual[emb.control])
+            timings["soft tissue"] = time.perf_counter() - t3
+        achieved = measure_flexion(out, self.setup)
+        timings["total"] = time.perf_counter() - t0
+        return PoseResult(out, float(flexion_deg), float(achieved), bone, skin_report, timings)
+
+    def with_options(self, **changes: Any) -> Repositioner:
+        """A new repositioner with some options changed (recomputes the precompute)."""
+        return Repositioner(self.model, self.setup, replace(self.options, **changes))

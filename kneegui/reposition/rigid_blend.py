@@ -1,0 +1,238 @@
+"""Blending rigid bone motions smoothly through soft tissue (a remedy beyond the paper).
+
+Each soft-tissue node gets weights ``w_s`` (one per rigid segment: femur, tibia group, patella,
+fixed parts; they sum to 1), computed once as harmonic functions over the soft-tissue mesh: 1 on
+the segment's own nodes, 0 on the other segments' nodes. A pose blends the segments' rigid
+motions in the Lie algebra of rigid motions: ``x' = exp(sum_s w_s log T_s) x``. For motions about
+one common axis (the knee's flexion about the F-E axis) this rotates a node about that axis by
+the weighted angle, so tissue wraps around the joint instead of collapsing onto the chord as a
+linear blend of positions would.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from kneegui.geometry.transforms import RigidTransform
+from kneegui.model import ElementBlock
+
+_SMALL = 1e-9
+
+#: Element edges (pairs of local node numbers) per element type, for the mesh graph.
+ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
+    "hex8": (
+        (0, 1),
+        (1, 2),
+        (2, 3),
+        (3, 0),
+        (4, 5),
+        (5, 6),
+        (6, 7),
+        (7, 4),
+        (0, 4),
+        (1, 5),
+        (2, 6),
+        (3, 7),
+    ),
+    "wedge6": ((0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)),
+    "pyramid5": ((0, 1), (1, 2), (2, 3), (3, 0), (0, 4), (1, 4), (2, 4), (3, 4)),
+    "tet4": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
+    "tet10": (
+        (0, 4),
+        (4, 1),
+        (1, 5),
+        (5, 2),
+        (2, 6),
+        (6, 0),
+        (0, 7),
+        (7, 3),
+        (1, 8),
+        (8, 3),
+        (2, 9),
+        (9, 3),
+    ),
+    "quad4": ((0, 1), (1, 2), (2, 3), (3, 0)),
+    "tri3": ((0, 1), (1, 2), (2, 0)),
+    "beam2": ((0, 1),),
+    "discrete": ((0, 1),),
+}
+
+
+def mesh_edges(blocks: Mapping[str, ElementBlock], element_masks: Mapping[str, NDArray]) -> NDArray:
+    """Unique undirected edges (E, 2) of the selected elements."""
+    chunks = []
+    for etype, block in blocks.items():
+        mask = element_masks.get(etype)
+        if mask is None or not mask.any():
+            continue
+        conn = block.conn[mask]
+        for a, b in ELEMENT_EDGES[etype]:
+            chunks.append(np.column_stack([conn[:, a], conn[:, b]]))
+    if not chunks:
+        return np.zeros((0, 2), dtype=np.int64)
+    e = np.sort(np.concatenate(chunks), axis=1)
+    e = e[e[:, 0] != e[:, 1]]
+    return np.unique(e, axis=0)
+
+
+def harmonic_weights(
+    n_nodes: int,
+    edges: NDArray[np.int64],
+    free: NDArray[np.int64],
+    anchors: Sequence[NDArray[np.int64]],
+    coords: NDArray[np.float64],
+    anchor_surfaces: Sequence[NDArray[np.int64]] | None = None,
+    regularisation: float = 1e-4,
+) -> NDArray[np.float64]:
+    """Harmonic partition-of-unity weights of ``free`` nodes with respect to anchor groups.
+
+    Solves the graph Laplace equation over ``edges`` for each group ``s``: ``w_s = 1`` on
+    ``anchors[s]``, ``0`` on the other anchors. A small pull towards a geometric prior
+    (inverse-square distance to each group) keeps free nodes that no edge path connects to an
+    anchor well defined.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Number of model nodes.
+    edges : (E, 2) ndarray of int
+        Mesh edges (node indices).
+    free : (F,) ndarray of int
+        Nodes whose weights are wanted.
+    anchors : sequence of (A_s,) ndarray of int
+        Node indices of each rigid group.
+    coords : (N, 3) ndarray of float
+        Initial coordinates (for the prior).
+    anchor_surfaces : sequence of ndarray of int, optional
+        Subsets of the anchors used for the distance prior (default: the anchors).
+    regularisation : float
+        Strength of the prior relative to the mean node degree.
+
+    Returns
+    -------
+    (F, S) ndarray of float
+        Weights, rows summing to 1.
+    """
+    n_groups = len(anchors)
+    free = np.asarray(free, dtype=np.int64)
+    if len(free) == 0:
+        return np.zeros((0, n_groups))
+    value = np.full((n_nodes, n_groups), np.nan)
+    for idx in anchors:
+        value[idx] = 0.0
+    for s, idx in enumerate(anchors):
+        value[idx, s] = 1.0
+    prior = _distance_prior(coords, free, anchor_surfaces or anchors)
+    pos = np.full(n_nodes, -1, dtype=np.int64)
+    pos[free] = np.arange(len(free))
+    a, b = edges[:, 0], edges[:, 1]
+    keep = (pos[a] >= 0) | (pos[b] >= 0)
+    a, b = a[keep], b[keep]
+    deg = np.bincount(np.concatenate([a, b]), minlength=n_nodes).astype(np.float64)
+    eps = regularisation * max(float(deg[free].mean()), 1.0)
+    rhs = eps * prior
+    rows, cols, vals = [], [], []
+    for u, v in ((a, b), (b, a)):
+        fu = pos[u] >= 0
+        fv = pos[v] >= 0
+        both = fu & fv
+        rows.append(pos[u[both]])
+        cols.append(pos[v[both]])
+        vals.append(np.full(int(both.sum()), -1.0))
+        # edges to anchored (Dirichlet) nodes move to the right-hand side
+        known = fu & ~fv
+        known &= ~np.isnan(value[v, 0])
+        np.add.at(rhs, pos[u[known]], value[v[known]])
+    diag = deg[free] + eps
+    lap = sp.csr_matrix(
+        (
+            np.concatenate([*vals, diag]),
+            (
+                np.concatenate([*rows, np.arange(len(free))]),
+                np.concatenate([*cols, np.arange(len(free))]),
+            ),
+        ),
+        shape=(len(free), len(free)),
+    )
+    if len(free) <= 250_000:
+        solve = spla.splu(lap.tocsc()).solve
+        w = solve(rhs)
+    else:
+        w = np.empty_like(rhs)
+        precond = sp.diags(1.0 / diag)
+        for s in range(n_groups):
+            w[:, s], _ = spla.cg(lap, rhs[:, s], x0=prior[:, s], M=precond, rtol=1e-8, maxiter=5000)
+    w = np.clip(w, 0.0, None)
+    total = w.sum(axis=1, keepdims=True)
+    return np.where(total > _SMALL, w / np.maximum(total, _SMALL), prior)
+
+
+def _distance_prior(
+    coords: NDArray[np.float64], free: NDArray[np.int64], surfaces: Sequence[NDArray[np.int64]]
+) -> NDArray[np.float64]:
+    inv = np.zeros((len(free), len(surfaces)))
+    for s, idx in enumerate(surfaces):
+        if len(idx) == 0:
+            continue
+        d, _ = cKDTree(coords[idx]).query(coords[free])
+        inv[:, s] = 1.0 / np.maximum(d, 1e-6) ** 2
+    total = inv.sum(axis=1, keepdims=True)
+    return inv / np.maximum(total, _SMALL)
+
+
+# ------------------------------------------------------------------------------ Lie algebra
+def _hat(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def log_rigid(transform: RigidTransform) -> NDArray[np.float64]:
+    """Twist ``(omega, v)`` (6,) with ``exp`` equal to the transform (rotation angle < 180°)."""
+    r, t = transform.rotation, transform.translation
+    c = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(c))
+    if theta < 1e-8:
+        return np.concatenate([np.zeros(3), t])
+    omega = (
+        theta
+        / (2.0 * np.sin(theta))
+        * np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    )
+    wx = _hat(omega)
+    v_inv = (
+        np.eye(3)
+        - 0.5 * wx
+        + (1.0 / theta**2) * (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) * wx @ wx
+    )
+    return np.concatenate([omega, v_inv @ t])
+
+
+def exp_twists_apply(twists: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray:
+    """Apply ``exp(twist_i)`` to ``points[i]`` for every row, vectorised.
+
+    Parameters
+    ----------
+    twists : (M, 6) ndarray
+        ``(omega, v)`` per point.
+    points : (M, 3) ndarray
+        Points to move.
+    """
+    omega, v = twists[:, :3], twists[:, 3:]
+    theta = np.linalg.norm(omega, axis=1)
+    small = theta < 1e-6
+    th = np.where(small, 1.0, theta)
+    s, c = np.sin(th), np.cos(th)
+    # series for small angles keep the coefficients accurate
+    a = np.where(small, 1.0 - theta**2 / 6.0, s / th)  # sin(t)/t
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - c) / th**2)  # (1-cos t)/t^2
+    d = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - s) / th**3)  # (t-sin t)/t^3
+    wxp = np.cross(omega, points)
+    rp = points + a[:, None] * wxp + b[:, None] * np.cross(omega, wxp)
+    wxv = np.cross(omega, v)
+    vv = v + b[:, None] * wxv + d[:, None] * np.cross(omega, wxv)
+    return rp + vv
