@@ -1,0 +1,164 @@
+"""Which nodes the smoother may move: interior soft-tissue nodes near degraded elements."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.model import Model
+from kneegui.quality.metrics import QualityResult
+from kneegui.smoothing.topology import boundary_node_mask, node_part_count
+
+#: Solid types whose nodes the smoother can move (tet10 mid-side nodes would be left behind).
+MOVABLE_SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4")
+
+
+def degraded_elements(
+    result: QualityResult,
+    initial: QualityResult | None = None,
+    threshold: float = 0.6,
+) -> dict[str, NDArray[np.bool_]]:
+    """Elements the smoother should work on.
+
+    An element is degraded when it is inverted (corner Jacobian <= 0), or when its corner
+    Jacobian is below ``threshold`` *and* (given ``initial``) below its initial value.
+
+    Parameters
+    ----------
+    result : QualityResult
+        Full quality of the posed model.
+    initial : QualityResult, optional
+        Full quality of the initial model (same blocks).
+    threshold : float
+        Corner-Jacobian level below which an element counts as degraded (the warn level).
+
+    Returns
+    -------
+    dict of str to (m,) ndarray of bool
+        Per element type, aligned with the block rows.
+    """
+    out = {}
+    for etype, q in result.by_type.items():
+        bad = q.jacobian_corner < threshold
+        if initial is not None and etype in initial:
+            bad &= q.jacobian_corner < initial[etype].jacobian_corner - 1e-12
+        out[etype] = bad | q.inverted
+    return out
+
+
+def _grow(
+    model: Model, selected: NDArray[np.bool_], part_ids: NDArray[np.int64], rings: int
+) -> NDArray[np.bool_]:
+    """Add ``rings`` layers of elements (of the given parts) around the selected nodes."""
+    selected = selected.copy()
+    for _ in range(rings):
+        grown = selected.copy()
+        for etype in MOVABLE_SOLID_TYPES:
+            block = model.blocks.get(etype)
+            if block is None:
+                continue
+            in_parts = np.isin(block.part_ids, part_ids)
+            touching = in_parts & selected[block.conn].any(axis=1)
+            grown[block.conn[touching].reshape(-1)] = True
+        selected = grown
+    return selected
+
+
+def _base_candidates(
+    model: Model,
+    soft_tissue_part_ids: Iterable[int],
+    degraded_element_mask: Mapping[str, NDArray[np.bool_]] | None,
+    rings: int,
+) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    soft = np.array(sorted(set(int(p) for p in soft_tissue_part_ids)), dtype=np.int64)
+    n = model.n_nodes
+    soft_nodes = np.zeros(n, dtype=bool)
+    soft_nodes[model.part_node_indices(soft, etypes=MOVABLE_SOLID_TYPES)] = True
+    if degraded_element_mask is None:
+        near = soft_nodes
+    else:
+        start = np.zeros(n, dtype=bool)
+        for etype, mask in degraded_element_mask.items():
+            block = model.blocks.get(etype)
+            if block is not None and len(block):
+                start[block.conn[np.asarray(mask, dtype=bool)].reshape(-1)] = True
+        near = _grow(model, start, soft, rings)
+    # nodes of element types the smoother cannot move, or of other parts, stay
+    blocked = np.zeros(n, dtype=bool)
+    for etype, block in model.blocks.items():
+        if etype not in MOVABLE_SOLID_TYPES and etype not in ("quad4", "tri3") and len(block):
+            blocked[block.conn.reshape(-1)] = True
+    return near & soft_nodes & ~blocked, soft
+
+
+def smoothing_free_nodes(
+    model: Model,
+    soft_tissue_part_ids: Iterable[int],
+    fixed_part_ids: Iterable[int] = (),
+    degraded_element_mask: Mapping[str, NDArray[np.bool_]] | None = None,
+    rings: int = 2,
+) -> NDArray[np.bool_]:
+    """Interior soft-tissue nodes near degraded elements: the nodes the smoother may move.
+
+    Parameters
+    ----------
+    model : Model
+        The (posed) model.
+    soft_tissue_part_ids : iterable of int
+        Parts whose solid elements may be smoothed (flesh, ligament, ...).
+    fixed_part_ids : iterable of int
+        Parts that must not change (bones, parts outside the joint); their nodes never move.
+    degraded_element_mask : mapping of str to (m,) bool array, optional
+        Degraded elements per type (e.g. from :func:`degraded_elements`). Default: every
+        soft-tissue element counts, so every interior soft-tissue node is free.
+    rings : int
+        Layers of neighbouring soft-tissue elements added around the degraded ones.
+
+    Returns
+    -------
+    (N,) ndarray of bool
+        Free nodes: used only by soft-tissue solids of a single part (hex8, wedge6, pyramid5,
+        tet4), not on the boundary surface of the solid mesh, not in a fixed part, and within
+        ``rings`` elements of a degraded element.
+    """
+    free, _ = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
+    free &= node_part_count(model.blocks, model.n_nodes) == 1
+    free &= ~boundary_node_mask(model.n_nodes, model.blocks)
+    fixed = list(fixed_part_ids)
+    if fixed:
+        free[model.part_node_indices(fixed)] = False
+    return free
+
+
+def smoothing_sliding_nodes(
+    model: Model,
+    soft_tissue_part_ids: Iterable[int],
+    skin_part_ids: Iterable[int] = (),
+    fixed_part_ids: Iterable[int] = (),
+    degraded_element_mask: Mapping[str, NDArray[np.bool_]] | None = None,
+    rings: int = 2,
+) -> NDArray[np.bool_]:
+    """Surface nodes that may slide tangentially on the skin (the smoother's option).
+
+    The nodes on the outer boundary surface of the solid mesh that are used only by
+    soft-tissue parts and skin parts, lie near degraded elements (as in
+    :func:`smoothing_free_nodes`) and are not in a fixed part.
+
+    Returns
+    -------
+    (N,) ndarray of bool
+    """
+    near, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
+    allowed_parts = set(soft.tolist()) | set(int(p) for p in skin_part_ids)
+    other = np.zeros(model.n_nodes, dtype=bool)
+    for block in model.blocks.values():
+        if len(block):
+            outside = ~np.isin(block.part_ids, list(allowed_parts))
+            other[block.conn[outside].reshape(-1)] = True
+    sliding = near & ~other & boundary_node_mask(model.n_nodes, model.blocks)
+    fixed = list(fixed_part_ids)
+    if fixed:
+        sliding[model.part_node_indices(fixed)] = False
+    return sliding

@@ -1,0 +1,88 @@
+"""Smoothing a posed model in one call: degraded elements -> free nodes -> smoother."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from kneegui.model import Model
+from kneegui.quality.metrics import QualityResult, compute_quality
+from kneegui.smoothing.free_nodes import (
+    degraded_elements,
+    smoothing_free_nodes,
+    smoothing_sliding_nodes,
+)
+from kneegui.smoothing.smoother import (
+    CancelCallback,
+    ProgressCallback,
+    SmoothingReport,
+    smooth_mesh,
+)
+
+
+def smooth_posed_model(
+    posed: Model,
+    soft_tissue_part_ids: Iterable[int],
+    fixed_part_ids: Iterable[int] = (),
+    initial: Model | QualityResult | None = None,
+    *,
+    threshold: float = 0.6,
+    rings: int = 2,
+    slide_skin: bool = False,
+    skin_part_ids: Iterable[int] = (),
+    progress: ProgressCallback | None = None,
+    cancel: CancelCallback | None = None,
+    **options,
+) -> tuple[Model, SmoothingReport]:
+    """Smooth the soft tissue of a posed model around its degraded elements.
+
+    Parameters
+    ----------
+    posed : Model
+        The posed model (not modified).
+    soft_tissue_part_ids : iterable of int
+        Parts that may be smoothed (flesh, ligament, meniscus, tendon, capsule).
+    fixed_part_ids : iterable of int
+        Parts whose nodes never move (bones, fixed parts).
+    initial : Model or QualityResult, optional
+        The initial model (or its quality): an element counts as degraded only if it got worse.
+    threshold : float
+        Corner-Jacobian level below which an element counts as degraded.
+    rings : int
+        Element layers around the degraded elements whose nodes may move.
+    slide_skin : bool
+        Also let surface nodes of the soft tissue / skin slide tangentially.
+    skin_part_ids : iterable of int
+        Skin parts (shells sharing the flesh's surface nodes), used with ``slide_skin``.
+    progress, cancel : callable, optional
+        See :func:`kneegui.smoothing.smooth_mesh`.
+    **options
+        Passed to :func:`kneegui.smoothing.smooth_mesh` (``max_sweeps``, ``optimize``, ...).
+
+    Returns
+    -------
+    model : Model
+        A new model with smoothed coordinates (same ids and connectivity).
+    report : SmoothingReport
+    """
+    soft = list(soft_tissue_part_ids)
+    fixed = list(fixed_part_ids)
+    quality = compute_quality(posed.coords, posed.blocks)
+    initial_quality = (
+        compute_quality(initial.coords, initial.blocks) if isinstance(initial, Model) else initial
+    )
+    degraded = degraded_elements(quality, initial_quality, threshold)
+    free = smoothing_free_nodes(posed, soft, fixed, degraded, rings)
+    sliding = None
+    if slide_skin:
+        sliding = smoothing_sliding_nodes(posed, soft, skin_part_ids, fixed, degraded, rings)
+    coords, report = smooth_mesh(
+        posed.coords,
+        posed.blocks,
+        free,
+        sliding_nodes=sliding,
+        target=threshold,
+        progress=progress,
+        cancel=cancel,
+        **options,
+    )
+    return posed.with_coords(coords), report

@@ -1,0 +1,834 @@
+"""Connectivity-preserving mesh smoothing, after the DARSS scheme of Jani et al. (2012).
+
+Stage 1 moves every free node towards the mean of its edge neighbours (a Laplacian step, tried
+with relaxation 1, 1/2, 1/4) and keeps a move only if the worst corner Jacobian of the elements
+sharing the node does not drop and their summed quality rises. Nodes that share no element are
+moved together (a colouring of the free nodes), so each step is one vectorised evaluation.
+
+Stage 2 runs Nelder-Mead (``scipy.optimize.minimize``) on each node whose neighbourhood is still
+below the target, worst first, maximising the summed normalised Jacobians of the elements sharing
+it (plus a term that pulls negative corners back), and again keeps the result only if the worst
+Jacobian around the node does not drop.
+
+Because every accepted move leaves the worst corner Jacobian of the elements it touches at least
+as good as before, the model's worst corner Jacobian never decreases. Fixed nodes never move,
+element count and connectivity never change, and the result is deterministic.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
+
+from kneegui.errors import Cancelled, GeometryError
+from kneegui.model import ElementBlock, Model
+from kneegui.smoothing.topology import (
+    ELEMENT_EDGES,
+    boundary_faces,
+    boundary_node_normals,
+    unique_pairs,
+)
+
+ProgressCallback = Callable[[float, str], None]
+CancelCallback = Callable[[], bool]
+
+#: Corner determinants ``det(p[a] - p[i], p[b] - p[i], p[c] - p[i])`` as (i, a, b, c) per type;
+#: for quad shells ``c`` is replaced by the element's mean normal.
+CORNER_TRIPLES: dict[str, NDArray[np.int64]] = {
+    "hex8": np.array(
+        [
+            (0, 1, 3, 4),
+            (1, 2, 0, 5),
+            (2, 3, 1, 6),
+            (3, 0, 2, 7),
+            (4, 7, 5, 0),
+            (5, 4, 6, 1),
+            (6, 5, 7, 2),
+            (7, 6, 4, 3),
+        ]
+    ),
+    "wedge6": np.array(
+        [(0, 1, 2, 3), (1, 2, 0, 4), (2, 0, 1, 5), (3, 5, 4, 0), (4, 3, 5, 1), (5, 4, 3, 2)]
+    ),
+    "pyramid5": np.array([(0, 1, 3, 4), (1, 2, 0, 4), (2, 3, 1, 4), (3, 0, 2, 4)]),
+    "tet4": np.array([(0, 1, 2, 3)]),
+    "quad4": np.array([(0, 1, 3, -1), (1, 2, 0, -1), (2, 3, 1, -1), (3, 0, 2, -1)]),
+}
+SMOOTHED_TYPES: tuple[str, ...] = tuple(CORNER_TRIPLES)
+
+
+@dataclass(frozen=True)
+class SmoothingReport:
+    """What the smoother did.
+
+    Attributes
+    ----------
+    free_nodes, sliding_nodes : int
+        Nodes allowed to move freely / tangentially on the surface.
+    moved_nodes : int
+        Nodes whose position changed.
+    stage1_sweeps, stage1_moves : int
+        Laplacian sweeps run and moves accepted.
+    stage2_nodes, stage2_improved : int
+        Nodes optimised by Nelder-Mead and how many of them improved.
+    worst_jacobian_before, worst_jacobian_after : float
+        Worst corner Jacobian of the elements touching a movable node.
+    inverted_before, inverted_after : int
+        Elements touching a movable node with corner Jacobian <= 0.
+    max_displacement : float
+        Largest node displacement (model units).
+    seconds : float
+        Wall time.
+    """
+
+    free_nodes: int
+    sliding_nodes: int
+    moved_nodes: int
+    stage1_sweeps: int
+    stage1_moves: int
+    stage2_nodes: int
+    stage2_improved: int
+    worst_jacobian_before: float
+    worst_jacobian_after: float
+    inverted_before: int
+    inverted_after: int
+    max_displacement: float
+    seconds: float
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict."""
+        return asdict(self)
+
+
+# ---------------------------------------------------------------------- element quality
+def corner_quality(
+    points: NDArray[np.float64], etype: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Corner Jacobian ratio and worst scaled corner determinant of elements.
+
+    Parameters
+    ----------
+    points : (m, k, 3) ndarray of float
+        Node positions of ``m`` elements (corner nodes in the model's order).
+    etype : str
+        One of :data:`SMOOTHED_TYPES`.
+
+    Returns
+    -------
+    jacobian : (m,) ndarray
+        ``min/max`` of the corner determinants, ``-1`` when the largest is not positive (the
+        ``jacobian_corner`` of :mod:`kneegui.quality`).
+    scaled : (m,) ndarray
+        Smallest ``det / (|a| |b| |c|)`` over the corners, in [-1, 1]: continuous, used to pull
+        inverted corners back.
+    """
+    t = CORNER_TRIPLES[etype]
+    pts = np.moveaxis(points, 2, 0)  # (3, m, k): component-major, cheap slicing
+    i = pts[:, :, t[:, 0]]
+    va = pts[:, :, t[:, 1]] - i
+    vb = pts[:, :, t[:, 2]] - i
+    if etype == "quad4":
+        d02 = pts[:, :, 2] - pts[:, :, 0]
+        d13 = pts[:, :, 3] - pts[:, :, 1]
+        n = np.stack(
+            [
+                d02[1] * d13[2] - d02[2] * d13[1],
+                d02[2] * d13[0] - d02[0] * d13[2],
+                d02[0] * d13[1] - d02[1] * d13[0],
+            ]
+        )
+        vc = np.broadcast_to(n[:, :, None], va.shape)
+    else:
+        vc = pts[:, :, t[:, 3]] - i
+    det = (
+        vc[0] * (va[1] * vb[2] - va[2] * vb[1])
+        + vc[1] * (va[2] * vb[0] - va[0] * vb[2])
+        + vc[2] * (va[0] * vb[1] - va[1] * vb[0])
+    )
+    hi = det.max(axis=1)
+    lo = det.min(axis=1)
+    positive = hi > 0
+    jac = np.full(len(hi), -1.0)
+    np.divide(lo, hi, out=jac, where=positive)
+    norm = np.sqrt((va * va).sum(axis=0) * (vb * vb).sum(axis=0) * (vc * vc).sum(axis=0))
+    ratio = np.full(det.shape, -1.0)
+    np.divide(det, norm, out=ratio, where=norm > 0)
+    scaled = ratio.min(axis=1)
+    return jac, scaled
+
+
+@dataclass(frozen=True)
+class _Neighbourhood_Score:
+    """Per-node summary of the elements sharing the node."""
+
+    worst: NDArray  # smallest corner Jacobian
+    total: NDArray  # summed objective terms
+    tangle: NDArray  # summed negative scaled corner determinants (0 when nothing is inverted)
+    inverted: NDArray  # number of elements with Jacobian <= 0
+
+
+def _score(jac: NDArray, scaled: NDArray, owner: NDArray, n: int) -> _Neighbourhood_Score:
+    worst = np.full(n, np.inf)
+    np.minimum.at(worst, owner, jac)
+    count = np.bincount(owner, minlength=n)
+    total = np.bincount(owner, _objective_terms(jac, scaled), minlength=n)
+    # the worst element counts as much as all of them together: raise the minimum first
+    total = total + count * np.maximum(np.where(count > 0, worst, 0.0), -1.0)
+    return _Neighbourhood_Score(
+        worst=worst,
+        total=total,
+        tangle=np.bincount(owner, np.minimum(scaled, 0.0), minlength=n),
+        inverted=np.bincount(owner, (jac <= 0).astype(float), minlength=n),
+    )
+
+
+def _accept(old: _Neighbourhood_Score, new: _Neighbourhood_Score, floor: float) -> NDArray:
+    """Which moves to keep.
+
+    (a) the worst Jacobian around the node does not drop and the summed quality rises; or
+    (b) while the neighbourhood holds an invalid element (Jacobian <= 0): it becomes less
+    tangled (negative scaled corners shrink), no more elements are invalid, and no element falls
+    below ``floor`` (the worst Jacobian of the whole region before smoothing), so the region's
+    worst value can never get worse.
+    """
+    eps = 1e-12 * np.maximum(np.abs(old.total), 1.0)
+    improve = (new.worst >= old.worst) & (new.total > old.total + eps)
+    untangle = (
+        (old.worst <= 0.0)
+        & (new.inverted <= old.inverted)
+        & (new.tangle > old.tangle + 1e-12)
+        & (new.worst >= floor)
+    )
+    return improve | untangle
+
+
+def _objective_terms(jac: NDArray, scaled: NDArray) -> NDArray:
+    """Per-element value the smoother maximises: Jacobian (clipped at -1) + negative corners."""
+    return np.maximum(jac, -1.0) + np.minimum(scaled, 0.0)
+
+
+# ---------------------------------------------------------------------- neighbourhoods
+@dataclass
+class _Neighbourhood:
+    """Elements touching the movable nodes and the incidence between them."""
+
+    types: list[str]
+    conn: list[NDArray[np.int64]]  # per type, corner connectivity of the touching elements
+    offset: NDArray[np.int64]  # handle offset of each type
+    handle_type: NDArray[np.int64]  # per handle: index into types
+    handle_row: NDArray[np.int64]  # per handle: row into conn[type]
+    node_ptr: NDArray[np.int64]  # CSR over movable nodes (compressed) -> handles
+    node_handles: NDArray[np.int64]
+    nbr_ptr: NDArray[np.int64]  # CSR over movable nodes -> edge-neighbour node indices
+    nbr: NDArray[np.int64]
+
+
+def _build_neighbourhood(
+    blocks: Mapping[str, ElementBlock], movable: NDArray[np.int64], n_nodes: int
+) -> _Neighbourhood:
+    is_movable = np.zeros(n_nodes, dtype=bool)
+    is_movable[movable] = True
+    compressed = np.full(n_nodes, -1, dtype=np.int64)
+    compressed[movable] = np.arange(len(movable))
+    types, conns, offsets = [], [], [0]
+    pair_node, pair_handle, edge_a, edge_b = [], [], [], []
+    for etype in SMOOTHED_TYPES:
+        block = blocks.get(etype)
+        if block is None or len(block) == 0:
+            continue
+        k = CORNER_TRIPLES[etype].shape[0]
+        conn = block.conn[:, :k]
+        touching = is_movable[conn].any(axis=1)
+        if not touching.any():
+            continue
+        conn = np.ascontiguousarray(conn[touching])
+        base = offsets[-1]
+        handles = base + np.arange(len(conn))
+        hit = is_movable[conn]
+        pair_node.append(compressed[conn[hit]])
+        pair_handle.append(np.broadcast_to(handles[:, None], conn.shape)[hit])
+        for a, b in ELEMENT_EDGES[etype]:
+            edge_a.append(conn[:, a])
+            edge_b.append(conn[:, b])
+        types.append(etype)
+        conns.append(conn)
+        offsets.append(base + len(conn))
+    n_handles = offsets[-1]
+    handle_type = np.zeros(n_handles, dtype=np.int64)
+    handle_row = np.zeros(n_handles, dtype=np.int64)
+    for ti in range(len(types)):
+        handle_type[offsets[ti] : offsets[ti + 1]] = ti
+        handle_row[offsets[ti] : offsets[ti + 1]] = np.arange(offsets[ti + 1] - offsets[ti])
+    pn = np.concatenate(pair_node) if pair_node else np.zeros(0, dtype=np.int64)
+    ph = np.concatenate(pair_handle) if pair_handle else np.zeros(0, dtype=np.int64)
+    order = np.lexsort((ph, pn))
+    node_ptr = np.searchsorted(pn[order], np.arange(len(movable) + 1))
+    # edge neighbours of the movable nodes
+    ea = np.concatenate(edge_a) if edge_a else np.zeros(0, dtype=np.int64)
+    eb = np.concatenate(edge_b) if edge_b else np.zeros(0, dtype=np.int64)
+    src = np.concatenate([ea, eb])
+    dst = np.concatenate([eb, ea])
+    keep = is_movable[src]
+    pairs = unique_pairs(compressed[src[keep]], dst[keep], n_nodes)
+    nbr_ptr = np.searchsorted(pairs[:, 0], np.arange(len(movable) + 1))
+    return _Neighbourhood(
+        types=types,
+        conn=conns,
+        offset=np.array(offsets, dtype=np.int64),
+        handle_type=handle_type,
+        handle_row=handle_row,
+        node_ptr=node_ptr,
+        node_handles=ph[order],
+        nbr_ptr=nbr_ptr,
+        nbr=pairs[:, 1],
+    )
+
+
+def _csr_gather(ptr: NDArray, values: NDArray, rows: NDArray) -> tuple[NDArray, NDArray]:
+    """Concatenated ``values[ptr[r]:ptr[r+1]]`` for each row, and the row position of each."""
+    starts, stops = ptr[rows], ptr[rows + 1]
+    lengths = stops - starts
+    owner = np.repeat(np.arange(len(rows)), lengths)
+    within = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return values[np.repeat(starts, lengths) + within], owner
+
+
+def _evaluate(
+    nb: _Neighbourhood, coords: NDArray[np.float64], handles: NDArray[np.int64]
+) -> tuple[NDArray, NDArray]:
+    jac = np.empty(len(handles))
+    scaled = np.empty(len(handles))
+    types = nb.handle_type[handles]
+    for ti, etype in enumerate(nb.types):
+        sel = np.flatnonzero(types == ti)
+        if len(sel):
+            rows = nb.handle_row[handles[sel]]
+            jac[sel], scaled[sel] = corner_quality(coords[nb.conn[ti][rows]], etype)
+    return jac, scaled
+
+
+def _colour(
+    nb: _Neighbourhood, compressed: NDArray[np.int64], n_movable: int
+) -> tuple[list[NDArray[np.int64]], NDArray[np.int64], NDArray[np.int64]]:
+    """Split the movable nodes into groups of nodes that share no element (deterministic).
+
+    Returns the groups and the conflict graph (CSR ``ptr``, ``neighbours``) between movable
+    nodes that share an element.
+    """
+    # conflict pairs: movable nodes sharing an element
+    a, b = [], []
+    for conn in nb.conn:
+        local = compressed[conn]
+        k = conn.shape[1]
+        for i in range(k):
+            for j in range(k):
+                if i != j:
+                    both = (local[:, i] >= 0) & (local[:, j] >= 0)
+                    a.append(local[both, i])
+                    b.append(local[both, j])
+    if a:
+        pairs = unique_pairs(np.concatenate(a), np.concatenate(b), n_movable)
+    else:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+    ptr = np.searchsorted(pairs[:, 0], np.arange(n_movable + 1))
+    nbrs = pairs[:, 1]
+    # priority: a fixed pseudo-random permutation (deterministic)
+    priority = np.random.default_rng(12345).permutation(n_movable).astype(float)
+    uncoloured = np.ones(n_movable, dtype=bool)
+    colours = []
+    deg = np.diff(ptr)
+    while uncoloured.any():
+        nbr_priority = np.where(uncoloured[nbrs], priority[nbrs], -1.0)
+        best = np.full(n_movable, -1.0)
+        has = deg > 0
+        if len(nbrs):
+            red = np.maximum.reduceat(nbr_priority, np.minimum(ptr[:-1], len(nbrs) - 1))
+            best[has] = red[has]
+        chosen = uncoloured & (priority > best)
+        colours.append(np.flatnonzero(chosen))
+        uncoloured &= ~chosen
+    return colours, ptr, nbrs
+
+
+# ---------------------------------------------------------------------- the smoother
+def smooth_mesh(
+    model_or_coords: Model | ArrayLike,
+    blocks: Mapping[str, ElementBlock] | None,
+    free_nodes: ArrayLike,
+    *,
+    sliding_nodes: ArrayLike | None = None,
+    max_sweeps: int = 40,
+    relaxation: tuple[float, ...] = (1.0, 0.5, 0.25),
+    optimize: bool = True,
+    target: float = 0.6,
+    max_optimized_nodes: int = 3000,
+    max_evaluations: int = 60,
+    passes: int = 3,
+    sliding_feature_angle: float = 30.0,
+    progress: ProgressCallback | None = None,
+    cancel: CancelCallback | None = None,
+) -> tuple[NDArray[np.float64], SmoothingReport]:
+    """Improve element quality by moving free nodes; connectivity never changes.
+
+    Parameters
+    ----------
+    model_or_coords : Model or (N, 3) array_like of float
+        The mesh (or its node coordinates). Never modified.
+    blocks : mapping of str to ElementBlock or None
+        Element blocks; ``None`` to use the model's.
+    free_nodes : (N,) array_like of bool, or array_like of int
+        Nodes allowed to move in any direction (mask or indices), e.g. from
+        :func:`kneegui.smoothing.smoothing_free_nodes`.
+    sliding_nodes : (N,) bool or int array_like, optional
+        Surface nodes allowed to move only in the tangent plane of the solid mesh's boundary
+        (e.g. skin nodes). Nodes on a feature edge (boundary faces deviating more than
+        ``sliding_feature_angle`` degrees from the mean normal) stay fixed.
+    max_sweeps : int
+        Stage-1 (Laplacian) sweeps at most.
+    relaxation : tuple of float
+        Fractions of the Laplacian step tried in turn for each node.
+    optimize : bool
+        Run stage 2 (Nelder-Mead per node).
+    target : float
+        Both stages work on the nodes whose worst neighbouring corner Jacobian is below this
+        (stage 1 also on the nodes sharing an element with them).
+    max_optimized_nodes : int
+        Stage 2 handles at most this many nodes (the worst first).
+    max_evaluations : int
+        Objective evaluations per node in stage 2.
+    passes : int
+        Rounds of stage 1 + stage 2 (stops early when a round changes nothing, or when no
+        element is invalid and every neighbourhood reaches ``target``).
+    progress : callable(fraction, message), optional
+        Called with the fraction done (0-1) and a short message.
+    cancel : callable() -> bool, optional
+        Polled between steps; when it returns true the smoother raises
+        :class:`kneegui.errors.Cancelled` (the input is untouched, so nothing is lost).
+
+    Returns
+    -------
+    new_coords : (N, 3) ndarray of float
+        Smoothed coordinates (a new array).
+    report : SmoothingReport
+
+    Raises
+    ------
+    Cancelled
+        If ``cancel()`` returned true.
+    GeometryError
+        If the coordinates contain NaN or infinity.
+    """
+    started = time.perf_counter()
+    if isinstance(model_or_coords, Model):
+        coords0 = model_or_coords.coords
+        blocks = model_or_coords.blocks if blocks is None else blocks
+    else:
+        coords0 = np.asarray(model_or_coords, dtype=np.float64)
+        if blocks is None:
+            raise ValueError("blocks are required when coordinates are given")
+    n_nodes = len(coords0)
+    if not np.all(np.isfinite(coords0)):
+        raise GeometryError("node coordinates contain NaN or infinity")
+    coords = np.array(coords0, dtype=np.float64, copy=True)
+
+    def as_mask(sel) -> NDArray[np.bool_]:
+        arr = np.asarray(sel)
+        if arr.dtype == bool:
+            if arr.shape != (n_nodes,):
+                raise ValueError(f"node mask has shape {arr.shape}, expected ({n_nodes},)")
+            return arr.copy()
+        mask = np.zeros(n_nodes, dtype=bool)
+        mask[arr.astype(np.int64)] = True
+        return mask
+
+    free = as_mask(free_nodes)
+    sliding = as_mask(sliding_nodes) & ~free if sliding_nodes is not None else free & False
+    # tangent bases of the sliding nodes (feature nodes stay put)
+    basis = {}
+    if sliding.any():
+        quads, tris = boundary_faces(blocks)
+        normals = boundary_node_normals(coords, quads, tris)
+        cos_limit = np.cos(np.radians(sliding_feature_angle))
+        worst_cos = np.ones(n_nodes)
+        for faces in (quads, tris):
+            if len(faces):
+                p = coords[faces]
+                fn = (
+                    np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+                    if faces.shape[1] == 4
+                    else np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+                )
+                fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+                for k in range(faces.shape[1]):
+                    c = np.einsum("ij,ij->i", fn, normals[faces[:, k]])
+                    np.minimum.at(worst_cos, faces[:, k], c)
+        sliding &= (worst_cos >= cos_limit) & (np.linalg.norm(normals, axis=1) > 0)
+        for node in np.flatnonzero(sliding):
+            n = normals[node]
+            helper = np.eye(3)[np.argmin(np.abs(n))]
+            t1 = np.cross(n, helper)
+            t1 /= np.linalg.norm(t1)
+            basis[int(node)] = np.stack([t1, np.cross(n, t1)], 1)  # (3, 2)
+    movable = np.flatnonzero(free | sliding)
+    nb = _build_neighbourhood(blocks, movable, n_nodes)
+    n_mov = len(movable)
+    all_handles = np.arange(nb.offset[-1])
+    jac, scaled = _evaluate(nb, coords, all_handles)
+    worst_before = float(jac.min()) if len(jac) else float("nan")
+    inverted_before = int(np.count_nonzero(jac <= 0))
+    # per-node projector onto the allowed directions (identity for free nodes)
+    projector = np.broadcast_to(np.eye(3), (n_mov, 3, 3)).copy()
+    slide_pos = [i for i, node in enumerate(movable) if int(node) in basis]
+    for i in slide_pos:
+        b = basis[int(movable[i])]
+        projector[i] = b @ b.T
+
+    def check_cancel() -> None:
+        if cancel is not None and cancel():
+            raise Cancelled("smoothing cancelled")
+
+    def report_progress(fraction: float, message: str) -> None:
+        if progress is not None:
+            progress(float(min(max(fraction, 0.0), 1.0)), message)
+
+    # ------------------------------------------------------------------ stages 1 and 2
+    compressed = np.full(n_nodes, -1, dtype=np.int64)
+    compressed[movable] = np.arange(n_mov)
+    if n_mov:
+        colours, conflict_ptr, conflict_nbrs = _colour(nb, compressed, n_mov)
+    else:
+        colours, conflict_ptr, conflict_nbrs = [], np.zeros(1, np.int64), np.zeros(0, np.int64)
+    scale = 1.0
+    if n_mov and len(nb.nbr):
+        edge_len = np.linalg.norm(
+            coords[movable[np.repeat(np.arange(n_mov), np.diff(nb.nbr_ptr))]] - coords[nb.nbr],
+            axis=1,
+        )
+        scale = float(np.median(edge_len)) if len(edge_len) else 1.0
+    state = _State(nb, coords, jac, scaled, movable, projector, basis, worst_before, scale)
+    moves = sweeps = optimized = improved = 0
+    n_passes = max(int(passes), 1) if n_mov else 0
+    dirty = np.ones(n_mov, dtype=bool)  # nodes whose neighbourhood changed since last tried
+    for p in range(n_passes):
+        before = (int(np.count_nonzero(jac <= 0)), float(jac.min()), float(jac.sum()))
+        snapshot = coords[movable].copy()
+
+        def sweep_progress(fraction: float, message: str, p=p) -> None:
+            report_progress((p + 0.5 * fraction) / n_passes, message)
+
+        def node_progress(fraction: float, message: str, p=p) -> None:
+            report_progress((p + 0.5 + 0.5 * fraction) / n_passes, message)
+
+        m, s_ = _laplacian_stage(
+            state, colours, (conflict_ptr, conflict_nbrs), target, max_sweeps, relaxation,
+            sweep_progress, check_cancel,
+        )  # fmt: skip
+        moves += m
+        sweeps += s_
+        if optimize:
+            o, i_ = _optimisation_stage(
+                state, target, max_optimized_nodes, max_evaluations, node_progress, check_cancel,
+                dirty,
+            )  # fmt: skip
+            optimized += o
+            improved += i_
+        after = (int(np.count_nonzero(jac <= 0)), float(jac.min()), float(jac.sum()))
+        moved = np.any(coords[movable] != snapshot, axis=1)
+        dirty = moved.copy()
+        if moved.any() and len(conflict_nbrs):
+            owner = np.repeat(np.arange(n_mov), np.diff(conflict_ptr))
+            dirty[owner[moved[conflict_nbrs]]] = True
+        if after[0] == 0 and after[1] >= target:
+            break
+        if after[0] >= before[0] and after[1] <= before[1] + 1e-9 and after[2] <= before[2] + 1e-6:
+            break
+    report_progress(1.0, "smoothing done")
+    displacement = np.linalg.norm(coords - coords0, axis=1)
+    report = SmoothingReport(
+        free_nodes=int(free.sum()),
+        sliding_nodes=int(sliding.sum()),
+        moved_nodes=int(np.count_nonzero(displacement > 0)),
+        stage1_sweeps=sweeps,
+        stage1_moves=moves,
+        stage2_nodes=optimized,
+        stage2_improved=improved,
+        worst_jacobian_before=worst_before,
+        worst_jacobian_after=float(jac.min()) if len(jac) else float("nan"),
+        inverted_before=inverted_before,
+        inverted_after=int(np.count_nonzero(jac <= 0)),
+        max_displacement=float(displacement.max()) if n_nodes else 0.0,
+        seconds=time.perf_counter() - started,
+    )
+    return coords, report
+
+
+@dataclass
+class _State:
+    """What the two stages share (arrays updated in place)."""
+
+    nb: _Neighbourhood
+    coords: NDArray[np.float64]
+    jac: NDArray[np.float64]
+    scaled: NDArray[np.float64]
+    movable: NDArray[np.int64]
+    projector: NDArray[np.float64]
+    basis: dict[int, NDArray[np.float64]]
+    floor: float
+    scale: float
+
+
+def _laplacian_stage(
+    st: _State,
+    colours: list[NDArray[np.int64]],
+    conflicts: tuple[NDArray[np.int64], NDArray[np.int64]],
+    target: float,
+    max_sweeps: int,
+    relaxation: tuple[float, ...],
+    progress: ProgressCallback,
+    check_cancel: Callable[[], None],
+) -> tuple[int, int]:
+    """Stage 1: guarded Laplacian sweeps. Returns (accepted moves, sweeps run).
+
+    Each sweep works on the nodes whose neighbourhood is below ``target`` and the nodes
+    sharing an element with them.
+    """
+    nb, coords, jac, scaled = st.nb, st.coords, st.jac, st.scaled
+    n_mov = len(st.movable)
+    all_handles, all_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
+    conflict_ptr, conflict_nbrs = conflicts
+    conflict_owner = np.repeat(np.arange(n_mov), np.diff(conflict_ptr))
+    tolerance = 1e-4 * st.scale  # smaller Laplacian steps are not tried
+    converged = 1e-3 * st.scale  # a sweep whose largest accepted move is smaller ends stage 1
+    moves = sweeps = 0
+    best = (int(np.count_nonzero(jac <= 0)), float(jac.min()) if len(jac) else 0.0)
+    stalled = 0
+    for sweep in range(max_sweeps):
+        check_cancel()
+        sweeps += 1
+        moved_this_sweep = 0
+        largest_move = 0.0
+        node_min = np.full(n_mov, np.inf)
+        np.minimum.at(node_min, all_owner, jac[all_handles])
+        poor = node_min < target
+        working = poor.copy()
+        working[conflict_owner[poor[conflict_nbrs]]] = True
+        if not working.any():
+            break
+        for full_group in colours:
+            group = full_group[working[full_group]]
+            if len(group) == 0:
+                continue
+            nodes = st.movable[group]
+            nbr_idx, owner = _csr_gather(nb.nbr_ptr, nb.nbr, group)
+            counts = np.bincount(owner, minlength=len(group))
+            mean = np.zeros((len(group), 3))
+            np.add.at(mean, owner, coords[nbr_idx])
+            mean /= np.maximum(counts, 1)[:, None]
+            step = np.einsum("nij,nj->ni", st.projector[group], mean - coords[nodes])
+            active = np.linalg.norm(step, axis=1) > tolerance
+            handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, group)
+            old = _score(jac[handles], scaled[handles], h_owner, len(group))
+            start = coords[nodes].copy()
+            for omega in relaxation:
+                if not active.any():
+                    break
+                coords[nodes[active]] = start[active] + omega * step[active]
+                sel = active[h_owner]
+                new_j, new_s = _evaluate(nb, coords, handles[sel])
+                new = _score(new_j, new_s, h_owner[sel], len(group))
+                accept = active & _accept(old, new, st.floor)
+                reject = active & ~accept
+                coords[nodes[reject]] = start[reject]  # put rejected nodes back
+                kept = accept[h_owner[sel]]
+                jac[handles[sel][kept]] = new_j[kept]
+                scaled[handles[sel][kept]] = new_s[kept]
+                moved_this_sweep += int(accept.sum())
+                if accept.any():
+                    largest_move = max(largest_move, omega * float(np.abs(step[accept]).max()))
+                active = reject
+        moves += moved_this_sweep
+        progress((sweep + 1) / max_sweeps, f"smoothing sweep {sweep + 1}")
+        if moved_this_sweep == 0 or largest_move < converged:
+            break
+        # stop when neither the invalid count nor the worst value improved for 3 sweeps
+        now = (int(np.count_nonzero(jac <= 0)), float(jac.min()))
+        if now[0] < best[0] or now[1] > best[1] + 1e-4:
+            best = (min(now[0], best[0]), max(now[1], best[1]))
+            stalled = 0
+        else:
+            stalled += 1
+            if stalled >= 3:
+                break
+    return moves, sweeps
+
+
+def _optimisation_stage(
+    st: _State,
+    target: float,
+    max_nodes: int,
+    max_evaluations: int,
+    progress: ProgressCallback,
+    check_cancel: Callable[[], None],
+    dirty: NDArray[np.bool_],
+) -> tuple[int, int]:
+    """Stage 2: Nelder-Mead per node, worst neighbourhoods first. Returns (tried, improved).
+
+    Only nodes flagged ``dirty`` (their neighbourhood changed since they were last tried) are
+    optimised.
+    """
+    nb = st.nb
+    n_mov = len(st.movable)
+    handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
+    node_min = np.full(n_mov, np.inf)
+    np.minimum.at(node_min, h_owner, st.jac[handles])
+    todo = np.flatnonzero((node_min < target) & dirty)
+    todo = todo[np.lexsort((todo, node_min[todo]))][:max_nodes]
+    improved = 0
+    for count, ci in enumerate(todo):
+        if count % 25 == 0:
+            check_cancel()
+            progress(count / len(todo), "optimising nodes")
+        improved += _optimise_node(
+            nb, st.coords, st.jac, st.scaled, st.movable, int(ci), st.basis, max_evaluations,
+            st.scale, st.floor,
+        )  # fmt: skip
+    return len(todo), improved
+
+
+def _corner_determinants(
+    points: NDArray[np.float64], etype: str, normal: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """(m, T) corner determinants; quads use ``normal`` (m, 3) when given (else their own)."""
+    t = CORNER_TRIPLES[etype]
+    i = points[:, t[:, 0]]
+    va, vb = points[:, t[:, 1]] - i, points[:, t[:, 2]] - i
+    if etype == "quad4":
+        if normal is None:
+            normal = np.cross(points[:, 2] - points[:, 0], points[:, 3] - points[:, 1])
+        vc = np.broadcast_to(normal[:, None, :], va.shape)
+    else:
+        vc = points[:, t[:, 3]] - i
+    return np.einsum("mtk,mtk->mt", np.cross(va, vb), vc)
+
+
+def _optimise_node(
+    nb: _Neighbourhood,
+    coords: NDArray[np.float64],
+    jac: NDArray[np.float64],
+    scaled: NDArray[np.float64],
+    movable: NDArray[np.int64],
+    ci: int,
+    basis: dict[int, NDArray[np.float64]],
+    max_evaluations: int,
+    scale: float,
+    floor: float,
+) -> int:
+    """Nelder-Mead on one node; updates ``coords``, ``jac``, ``scaled`` in place. 1 if improved.
+
+    With one node moving, every corner determinant is an affine function of its position
+    (a tetrahedron's volume is affine in each vertex; quad shells keep their starting mean
+    normal during the search), so the objective is evaluated from a precomputed affine map:
+    ``dets(x) = D0 + G (x - x0)``. The final position is re-checked with the exact measure.
+    """
+    node = int(movable[ci])
+    handles = nb.node_handles[nb.node_ptr[ci] : nb.node_ptr[ci + 1]]
+    if len(handles) == 0:
+        return 0
+    types = nb.handle_type[handles]
+    type_ids = np.unique(types)
+    order = np.concatenate([np.flatnonzero(types == ti) for ti in type_ids])
+    handles = handles[order]
+    types = types[order]
+    x0 = coords[node].copy()
+    b = basis.get(node, np.eye(3))
+    groups = []
+    for ti in type_ids:
+        conn = nb.conn[ti][nb.handle_row[handles[types == ti]]]
+        pts = coords[conn]
+        etype = nb.types[ti]
+        normal = None
+        if etype == "quad4":
+            normal = np.cross(pts[:, 2] - pts[:, 0], pts[:, 3] - pts[:, 1])
+        groups.append((etype, conn, conn == node, pts, normal))
+    distances = np.concatenate([np.linalg.norm(g[3] - x0, axis=2)[~g[2]] for g in groups])
+    local_scale = float(distances.mean()) if len(distances) else scale
+    local_scale = local_scale or scale
+    width = max(CORNER_TRIPLES[g[0]].shape[0] for g in groups)
+
+    def all_dets(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = []
+        for etype, _, at, pts, normal in groups:
+            p = pts.copy()
+            p[at] = x
+            d = _corner_determinants(p, etype, normal)
+            if d.shape[1] < width:  # pad with the first column: min / max unchanged
+                d = np.hstack([d, np.repeat(d[:, :1], width - d.shape[1], axis=1)])
+            out.append(d)
+        return np.vstack(out)
+
+    d0 = all_dets(x0)
+    gradient = np.stack(
+        [
+            (all_dets(x0 + local_scale * b[:, k]) - d0).ravel() / local_scale
+            for k in range(b.shape[1])
+        ]
+    )  # (dim, E * width)
+    shape = d0.shape
+    volume_scale = local_scale**3
+    one = np.zeros(len(handles), dtype=np.int64)
+    old = _score(jac[handles], scaled[handles], one, 1)
+    old_min = float(old.worst[0])
+    old_inverted = float(old.inverted[0])
+    tangled = old_min <= 0.0
+    limit = floor if tangled else old_min
+
+    def surrogate(u: NDArray[np.float64]) -> float:
+        d = d0 + (u @ gradient).reshape(shape)
+        hi = d.max(axis=1)
+        lo = d.min(axis=1)
+        j = np.where(hi > 0, lo / np.where(hi > 0, hi, 1.0), -1.0)
+        mn = float(j.min())
+        value = (
+            np.maximum(j, -1.0).sum()
+            + len(j) * max(mn, -1.0)
+            + np.minimum(lo, 0.0).sum() / volume_scale
+        )
+        penalty = 10.0 * len(j) * max(0.0, limit - mn)
+        if tangled:
+            penalty += 10.0 * max(0.0, float(np.count_nonzero(j <= 0)) - old_inverted)
+        return -(value - penalty)
+
+    dim = b.shape[1]
+    simplex = np.vstack([np.zeros(dim), 0.2 * local_scale * np.eye(dim)])
+    res = minimize(
+        surrogate,
+        np.zeros(dim),
+        method="Nelder-Mead",
+        options={
+            "initial_simplex": simplex,
+            "maxfev": max_evaluations,
+            "xatol": 1e-3 * local_scale,
+            "fatol": 1e-7,
+        },
+    )
+    x = x0 + b @ res.x
+    js, ss = [], []
+    for etype, _, at, pts, _ in groups:
+        p = pts.copy()
+        p[at] = x
+        j, s_ = corner_quality(p, etype)
+        js.append(j)
+        ss.append(s_)
+    j = np.concatenate(js)
+    s_ = np.concatenate(ss)
+    if _accept(old, _score(j, s_, one, 1), floor)[0]:
+        coords[node] = x
+        jac[handles] = j
+        scaled[handles] = s_
+        return 1
+    return 0

@@ -1,0 +1,219 @@
+"""Smoothing: free-node selection, guarantees (worst Jacobian, fixed nodes, determinism),
+untangling, sliding skin nodes, progress and cancel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kneegui.errors import Cancelled
+from kneegui.quality import compute_quality
+from kneegui.smoothing import (
+    degraded_elements,
+    smooth_mesh,
+    smooth_posed_model,
+    smoothing_free_nodes,
+    smoothing_sliding_nodes,
+)
+from kneegui.smoothing.topology import boundary_node_mask
+
+
+def _swirl(model, amplitude, width):
+    """Twist the block's interior about the vertical axis through its centre (boundary stays)."""
+    c = model.coords
+    centre = c.max(axis=0) / 2
+    r = np.linalg.norm(c - centre, axis=1)
+    th = amplitude * np.exp(-((r / width) ** 2))
+    dx, dy = c[:, 0] - centre[0], c[:, 1] - centre[1]
+    out = c.copy()
+    out[:, 0] = centre[0] + dx * np.cos(th) - dy * np.sin(th)
+    out[:, 1] = centre[1] + dx * np.sin(th) + dy * np.cos(th)
+    return model.with_coords(out)
+
+
+def _jiggle(model, seed, amplitude=0.6, fraction=0.08):
+    """Move a random subset of interior flesh nodes at random: some elements invert."""
+    rng = np.random.default_rng(seed)
+    free = smoothing_free_nodes(model, [2], [1])
+    idx = np.flatnonzero(free)
+    pick = rng.choice(idx, size=max(3, int(fraction * len(idx))), replace=False)
+    c = model.coords.copy()
+    c[pick] += rng.uniform(-amplitude, amplitude, (len(pick), 3))
+    return model.with_coords(c)
+
+
+# ---------------------------------------------------------------------- free nodes
+def test_free_nodes_exclude_bone_part_boundary_and_surface(block_model):
+    model = block_model(6, 6, 6, bone_layers=2)
+    free = smoothing_free_nodes(model, [2], [1])
+    bone = model.part_node_indices([1])
+    surface = boundary_node_mask(model.n_nodes, model.blocks)
+    assert free.any()
+    assert not free[bone].any()  # includes the bone/flesh interface (part boundary)
+    assert not free[surface].any()
+    assert not free[model.part_node_indices([3])].any()  # skin shells
+    # every interior flesh node off the interface is free
+    z = model.coords[:, 2]
+    interior = ~surface & (z > 2.0)
+    assert np.array_equal(free, interior)
+
+
+def test_free_nodes_follow_degraded_elements_and_rings(block_model):
+    model = block_model(8, 8, 8, bone_layers=1, skin=False)
+    hexes = model.blocks["hex8"]
+    centre = model.coords[hexes.conn].mean(axis=1)
+    one = np.all(np.isclose(centre, (4.5, 4.5, 4.5)), axis=1)
+    assert one.sum() == 1
+    mask = {"hex8": one}
+    ring0 = smoothing_free_nodes(model, [2], [1], mask, rings=0)
+    ring1 = smoothing_free_nodes(model, [2], [1], mask, rings=1)
+    ring2 = smoothing_free_nodes(model, [2], [1], mask, rings=2)
+    assert ring0.sum() == 8 and ring1.sum() == 64 and ring2.sum() == 216 - 0
+    assert np.all(ring1[ring0]) and np.all(ring2[ring1])
+
+
+def test_degraded_elements_needs_to_be_worse_than_initial(block_model):
+    model = block_model(4, 4, 4, skin=False)
+    posed = _jiggle(model, 1)
+    q0 = compute_quality(model.coords, model.blocks)
+    q1 = compute_quality(posed.coords, posed.blocks)
+    deg = degraded_elements(q1, q0)["hex8"]
+    j = q1["hex8"].jacobian_corner
+    assert np.array_equal(deg, j < 0.6)  # the initial block is perfect
+    assert not degraded_elements(q0, q0)["hex8"].any()
+
+
+# ---------------------------------------------------------------------- guarantees
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, block_model):
+    model = block_model(7, 7, 7, bone_layers=1)
+    posed = _jiggle(model, seed)
+    q_before = compute_quality(posed.coords, posed.blocks)
+    free = smoothing_free_nodes(posed, [2], [1], degraded_elements(q_before), rings=1)
+    coords_before = posed.coords.copy()
+    new, report = smooth_mesh(posed, None, free)
+    assert np.array_equal(posed.coords, coords_before)  # input untouched
+    assert np.array_equal(new[~free], posed.coords[~free])  # fixed nodes exactly in place
+    q_after = compute_quality(new, posed.blocks)
+    assert q_after.worst_jacobian() >= q_before.worst_jacobian()
+    assert q_before.n_inverted > 0 and q_after.n_inverted == 0
+    assert report.inverted_after == 0 and report.worst_jacobian_after >= 0.6
+    assert report.worst_jacobian_before == pytest.approx(q_before.worst_jacobian())
+    assert report.moved_nodes == np.count_nonzero(np.any(new != posed.coords, axis=1))
+
+
+def test_smoothing_is_deterministic(block_model):
+    model = block_model(8, 8, 8)
+    posed = _swirl(model, 2.0, 2.5)
+    a, ra = smooth_posed_model(posed, [2], [1], initial=model)
+    b, rb = smooth_posed_model(posed, [2], [1], initial=model)
+    assert np.array_equal(a.coords, b.coords)
+    assert {k: v for k, v in ra.to_dict().items() if k != "seconds"} == {
+        k: v for k, v in rb.to_dict().items() if k != "seconds"
+    }
+
+
+def test_smoothing_untangles_a_twisted_core_and_keeps_topology(block_model):
+    model = block_model(12, 12, 12)
+    posed = _swirl(model, 2.5, 2.0)
+    q_posed = compute_quality(posed.coords, posed.blocks)
+    assert q_posed.n_inverted > 0
+    smoothed, report = smooth_posed_model(posed, [2], [1], initial=model)
+    q = compute_quality(smoothed.coords, smoothed.blocks)
+    assert q.n_inverted == 0
+    assert q.worst_jacobian() > 0.3 > q_posed.worst_jacobian()
+    assert report.stage1_moves > 0 and report.inverted_before == q_posed.n_inverted
+    for etype, block in posed.blocks.items():
+        assert smoothed.blocks[etype] is block  # same ids, parts and connectivity
+    assert np.array_equal(smoothed.node_ids, posed.node_ids)
+    bone = posed.part_node_indices([1])
+    skin = posed.part_node_indices([3])
+    assert np.array_equal(smoothed.coords[bone], posed.coords[bone])
+    assert np.array_equal(smoothed.coords[skin], posed.coords[skin])
+
+
+def test_stage_two_alone_improves_the_worst_element(block_model):
+    model = block_model(5, 5, 5, skin=False)
+    c = model.coords.copy()
+    node = np.flatnonzero(np.all(c == (2, 2, 3), axis=1))[0]
+    c[node] += (0.7, 0.6, -0.8)
+    posed = model.with_coords(c)
+    free = np.zeros(model.n_nodes, dtype=bool)
+    free[node] = True
+    q0 = compute_quality(posed.coords, posed.blocks)
+    new, report = smooth_mesh(posed, None, free, max_sweeps=0)
+    q1 = compute_quality(new, posed.blocks)
+    assert report.stage1_sweeps == 0 and report.stage2_improved >= 1
+    assert q1.worst_jacobian() > q0.worst_jacobian() + 0.3
+    assert np.linalg.norm(new[node] - model.coords[node]) < np.linalg.norm(
+        c[node] - model.coords[node]
+    )
+
+
+# ---------------------------------------------------------------------- sliding skin nodes
+def test_sliding_nodes_stay_on_the_flat_skin_and_keep_shells_valid(block_model):
+    model = block_model(8, 8, 4, bone_layers=1)
+    c = model.coords.copy()
+    top = np.isclose(c[:, 2], 4.0) & (c[:, 0] > 0) & (c[:, 0] < 8) & (c[:, 1] > 0) & (c[:, 1] < 8)
+    rng = np.random.default_rng(3)
+    c[top, :2] += rng.uniform(-0.45, 0.45, (top.sum(), 2))  # skin nodes shuffled in their plane
+    posed = model.with_coords(c)
+    q0 = compute_quality(posed.coords, posed.blocks)
+    deg = degraded_elements(q0, compute_quality(model.coords, model.blocks))
+    free = smoothing_free_nodes(posed, [2], [1], deg)
+    sliding = smoothing_sliding_nodes(posed, [2], [3], [1], deg)
+    assert (
+        sliding[top].any() and not sliding[~boundary_node_mask(model.n_nodes, model.blocks)].any()
+    )
+    new, report = smooth_mesh(posed, None, free, sliding_nodes=sliding)
+    assert report.sliding_nodes > 0
+    moved = np.any(new != posed.coords, axis=1)
+    assert np.any(moved & sliding)
+    # every sliding node stays on its face plane (x = 0 | 8, y = 0 | 8 or z = 4)
+    lo, hi = np.zeros(3), np.array([8.0, 8.0, 4.0])
+    on_plane = np.isclose(c, lo) | np.isclose(c, hi)
+    on_plane[:, 2] &= ~np.isclose(c[:, 2], 0.0)
+    np.testing.assert_allclose(
+        new[sliding][on_plane[sliding]], c[sliding][on_plane[sliding]], atol=1e-12
+    )
+    assert np.any(moved[top])
+    assert np.array_equal(new[~(free | sliding)], posed.coords[~(free | sliding)])
+    q1 = compute_quality(new, posed.blocks)
+    assert q1["quad4"].jacobian_corner.min() >= q0["quad4"].jacobian_corner.min()
+    assert q1.worst_jacobian() >= q0.worst_jacobian()
+    # edge and corner nodes of the flat skin are feature nodes: they never slide
+    rim = np.isclose(c[:, 2], 4.0) & ~top
+    assert np.array_equal(new[rim], posed.coords[rim])
+
+
+# ---------------------------------------------------------------------- progress and cancel
+def test_progress_reports_fractions_and_cancel_raises(block_model):
+    model = block_model(6, 6, 6)
+    posed = _jiggle(model, 5)
+    free = smoothing_free_nodes(posed, [2], [1])
+    calls = []
+    smooth_mesh(posed, None, free, progress=lambda f, m: calls.append((f, m)))
+    fractions = [f for f, _ in calls]
+    assert fractions and all(0.0 <= f <= 1.0 for f in fractions)
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert all(isinstance(m, str) and m for _, m in calls)
+    with pytest.raises(Cancelled):
+        smooth_mesh(posed, None, free, cancel=lambda: True)
+    polls = []
+
+    def cancel_late():
+        polls.append(1)
+        return len(polls) > 1
+
+    twisted = _swirl(block_model(8, 8, 8), 2.0, 2.5)
+    with pytest.raises(Cancelled):
+        smooth_mesh(twisted, None, smoothing_free_nodes(twisted, [2], [1]), cancel=cancel_late)
+    assert len(polls) == 2
+
+
+def test_nothing_to_move_returns_a_copy(block_model):
+    model = block_model(3, 3, 3)
+    free = np.zeros(model.n_nodes, dtype=bool)
+    new, report = smooth_mesh(model, None, free)
+    assert new is not model.coords and np.array_equal(new, model.coords)
+    assert report.moved_nodes == 0 and report.free_nodes == 0
