@@ -13,9 +13,10 @@ The directions come from the bone itself, never from the model's global axes:
    knee.
 
 In each half of the distal end, the surface nodes of a band around the condyle's lowest point are
-projected on the sagittal plane; the outer profile from the distal point round to the posterior
-and a little above (``0 .. max_arc_deg`` about a provisional centre) is kept and refined by
-circle fits that drop nodes off the circle. The user confirms or edits the result.
+projected on the sagittal plane; the outer profile from the distal point round past posterior
+(``0 .. max_arc_deg`` about a provisional centre) is fitted with a circle, trimming the nodes off
+it (a flatter distal facet, the metaphysis above the arc), and re-centred until stable; the nodes
+on that circle are the suggestion. The user confirms or edits the result.
 """
 
 from __future__ import annotations
@@ -176,39 +177,79 @@ def femur_frame(
     }
 
 
+def _angles(local: NDArray[np.float64], centre: NDArray[np.float64]):
+    """Angle about ``centre`` (0 = distal, 90 = posterior, degrees) and distance."""
+    d = local - centre
+    return np.degrees(np.arctan2(-d[:, 0], -d[:, 1])), np.hypot(d[:, 0], d[:, 1])
+
+
+def _outline(ang, rad, in_arc, bin_deg: float, tol: float) -> NDArray[np.bool_]:
+    """Points within ``tol`` of the outermost point of their angular bin."""
+    bins = np.floor(ang / bin_deg).astype(np.int64)
+    outer = np.zeros(len(ang), dtype=bool)
+    for b in np.unique(bins[in_arc]):
+        m = in_arc & (bins == b)
+        outer |= m & (rad >= rad[m].max() - tol)
+    return outer
+
+
+def _trimmed_circle(points: NDArray[np.float64], sel: NDArray[np.bool_], tol: float):
+    """Fit, then drop the worst-fitting points until every kept one is within ``tol``."""
+    sel = sel.copy()
+    while True:
+        if sel.sum() < 5:
+            return None, sel
+        fit = fit_circle_2d(points[sel])
+        res = np.abs(fit.residuals(points))
+        worst = res[sel].max()
+        if worst <= tol:
+            return fit, sel
+        cut = max(tol, min(0.8 * worst, 3.0 * float(np.median(res[sel]))))
+        sel &= res <= cut
+
+
 def _profile_selection(
     local: NDArray[np.float64], r0: float, max_arc_deg: float, tol: float
 ) -> NDArray[np.bool_]:
-    """Nodes on the posterior-distal outer profile of one condyle band.
+    """Nodes on the circular posterior profile of one condyle band.
 
-    ``local`` columns: anterior, superior (relative to the region's distal-posterior corner).
+    ``local`` columns: anterior, superior. The outline (outermost nodes per 5-degree sector about
+    a provisional centre, from slightly below the distal point to ``max_arc_deg``) is seeded with
+    its most posterior part - the flexion facet, circular on every knee - fitted with a circle
+    (trimming nodes off it), then grown sector by sector along the outline while the nodes stay
+    within ``tol`` of the refitted circle. A flatter distal facet or the metaphysis above the arc
+    stop the growth. Finally every node within ``tol`` of the circle in the grown range is kept.
     """
     ap, h = local[:, 0], local[:, 1]
     centre = np.array([ap.min() + r0, h.min() + r0])
-    keep = np.ones(len(local), dtype=bool)
-    for _ in range(4):
-        d = local - centre
-        ang = np.degrees(np.arctan2(-d[:, 0], -d[:, 1]))  # 0 = distal, 90 = posterior
-        rad = np.hypot(d[:, 0], d[:, 1])
-        in_arc = (ang >= -5.0) & (ang <= max_arc_deg)
-        bins = np.floor(ang / 5.0).astype(np.int64)
-        outer = np.zeros(len(local), dtype=bool)
-        for b in np.unique(bins[in_arc]):
-            m = in_arc & (bins == b)
-            outer |= m & (rad >= rad[m].max() - tol)
-        keep = outer
-        if keep.sum() < 5:
+    ang, rad = _angles(local, centre)
+    in_arc = (ang >= -10.0) & (ang <= max_arc_deg)
+    outline = _outline(ang, rad, in_arc, 5.0, tol)
+    seed = outline & (ap <= ap[outline].min() + 0.25 * r0)
+    fit, sel = _trimmed_circle(local, seed, tol)
+    if fit is None:
+        # rough surfaces: accept the seed's own scatter
+        fit, sel = _trimmed_circle(local, seed, 3.0 * fit_circle_2d(local[seed]).rms)
+        if fit is None:
+            return np.zeros(len(local), dtype=bool)
+    tol = max(tol, 3.0 * fit.rms)
+    for _ in range(100):
+        ang, rad = _angles(local, fit.center)
+        outline = _outline(ang, rad, (ang >= -10.0) & (ang <= max_arc_deg), 5.0, tol)
+        lo, hi = ang[sel].min(), ang[sel].max()
+        grown = (
+            outline
+            & (np.abs(fit.residuals(local)) <= tol)
+            & (ang >= lo - 10.0)
+            & (ang <= hi + 10.0)
+        )
+        if grown.sum() < 5 or np.array_equal(grown, sel):
             break
-        fit = fit_circle_2d(local[keep])
-        resid = np.abs(np.hypot(*(local - fit.center).T) - fit.radius)
-        near = in_arc & (resid <= max(tol, 2.5 * fit.rms))
-        if near.sum() >= 5:
-            keep = near
-        new_centre = fit.center
-        if np.allclose(new_centre, centre, atol=1e-3 * r0):
-            break
-        centre = new_centre
-    return keep
+        sel = grown
+        fit = fit_circle_2d(local[sel])
+    ang, _ = _angles(local, fit.center)
+    lo, hi = ang[sel].min(), ang[sel].max()
+    return (np.abs(fit.residuals(local)) <= tol) & (ang >= lo) & (ang <= hi)
 
 
 def suggest_condyle_nodes(
@@ -218,8 +259,8 @@ def suggest_condyle_nodes(
     tibia_part_ids: Iterable[int] | None = None,
     patella_part_ids: Iterable[int] | None = None,
     band_fraction: float = 0.08,
-    max_arc_deg: float = 120.0,
-    tolerance_mm: float = 1.0,
+    max_arc_deg: float = 140.0,
+    tolerance_mm: float = 0.3,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Suggest the posterior lateral and medial condyle node sets.
 
@@ -236,7 +277,8 @@ def suggest_condyle_nodes(
     band_fraction : float
         Half-width of each condyle's medial-lateral band, as a fraction of the distal width.
     max_arc_deg : float
-        Arc kept about the condyle centre, from the distal point (0) past posterior (90).
+        Largest angle searched about the condyle centre, from the distal point (0) past
+        posterior (90); nodes off the fitted circle are dropped anyway.
     tolerance_mm : float
         Distance below the outer profile (and off the fitted circle) still accepted (mm).
 

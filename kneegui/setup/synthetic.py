@@ -100,6 +100,7 @@ def build_synthetic_knee(
     noise_mm: float = 0.0,
     seed: int = 0,
     coordinate_landmarks: bool = False,
+    distal_flat_deg: float = 0.0,
 ) -> SyntheticKnee:
     """Build the synthetic knee.
 
@@ -119,6 +120,9 @@ def build_synthetic_knee(
         Gaussian noise added to the condyle rim nodes (mm).
     coordinate_landmarks : bool
         Give the axis landmarks as coordinates instead of node ids.
+    distal_flat_deg : float
+        Make each condyle's rim flat (a plane, like the demo leg's distal femur) from the distal
+        point up to this angle towards posterior; the circular arc then starts there.
     """
     rng = np.random.default_rng(seed)
     chunks: list[tuple[NDArray[np.float64], str, NDArray[np.int64], int]] = []
@@ -141,6 +145,9 @@ def build_synthetic_knee(
     shaft_start = add_hex([-12, -12, 25], [12, 12, 320], (2, 2, 20), 101)
     lat_pts, lat_conn, lat_ang = _wheel([-8.0, -30.0, zc], lateral_radius, 11.0, 72, 4)
     med_pts, med_conn, med_ang = _wheel([-8.0, 30.0, zc], medial_radius, 11.0, 72, 4)
+    for pts, ang, radius in ((lat_pts, lat_ang, lateral_radius), (med_pts, med_ang, medial_radius)):
+        flat = (ang < distal_flat_deg) | (ang > 360.0 - distal_flat_deg)
+        pts[flat, 2] = zc - radius * np.cos(np.radians(distal_flat_deg))
     lat_start = add(lat_pts, "quad4", lat_conn, 102)
     med_start = add(med_pts, "quad4", med_conn, 102)
     # tibia (flexed later), fibula, patella, flesh, skin, ligament
@@ -177,7 +184,7 @@ def build_synthetic_knee(
 
     # landmarks (subject frame), before mirroring and moving
     def arc_nodes(start, angles):
-        sel = np.flatnonzero((angles >= 0.0) & (angles <= 120.0))
+        sel = np.flatnonzero((angles >= distal_flat_deg) & (angles <= 120.0))
         return start + sel
 
     lat_nodes = arc_nodes(lat_start, lat_ang)
