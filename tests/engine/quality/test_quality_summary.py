@@ -132,3 +132,46 @@ def test_thresholds_table_has_sources_and_rejects_bad_rows(tmp_path):
     partial.write_text("role,metric,direction,hard_fail,fail,warn,source\nskin,aspect,max,,9,4,x\n")
     with pytest.raises(ThresholdsError, match="no default"):
         load_thresholds(partial)
+
+
+# ---------------------------------------------------------------------- kneegui quality
+def _write_pair(tmp_path, block_model):
+    from kneegui.io.lsdyna import write_model
+
+    model = block_model(4, 4, 4)
+    write_model(model, tmp_path / "initial.k")
+    c = model.coords.copy()
+    c[np.all(c == (2, 2, 2), axis=1)] = (2.3, 2.2, 1.1)  # inverts an element below
+    write_model(model.with_coords(c), tmp_path / "posed.k")
+    return tmp_path / "initial.k", tmp_path / "posed.k"
+
+
+def test_cli_table_and_gate(tmp_path, block_model, capsys):
+    from kneegui.cli import main
+
+    initial, posed = _write_pair(tmp_path, block_model)
+    assert main(["quality", str(initial)]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].split() == ["Metric", "initial.k"]
+    assert "1.00 (1.00 ± 0.00)" in out
+    code = main(["quality", str(posed), "--initial", str(initial), "--parts", "--gate"])
+    out = capsys.readouterr().out
+    assert code == 3
+    assert "Inverted elements" in out and "quality gate: 1 inverted element(s)" in out
+    assert main(["quality", str(posed)]) == 0  # without --gate the exit code stays 0
+
+
+def test_cli_json_has_model_parts_roles(tmp_path, block_model, capsys):
+    from kneegui.cli import main
+
+    _initial, posed = _write_pair(tmp_path, block_model)
+    out_file = tmp_path / "q.json"
+    assert main(["quality", str(posed), "--json", "--out", str(out_file)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(out_file.read_text())
+    assert set(printed) >= {"model", "parts", "roles"}
+    assert set(printed["parts"]) == {"1", "2", "3"}
+    for metric in ("jacobian", "aspect", "warpage", "skew"):
+        assert set(printed["model"][metric]) == {"worst", "mean", "std", "warn", "fail"}
+    assert printed["model"]["inverted"] == 1
+    assert printed["model"]["jacobian"]["worst"] == pytest.approx(-0.4)
