@@ -282,7 +282,7 @@ class _DeckReader:
         return [self._line(f, i) for i in b.data_lines.tolist()]
 
     def _fixed_array(self, b: _Block, lines: NDArray[np.int64], width: int) -> NDArray[np.uint8]:
-        """(n, width) bytes of the given data lines, padded with spaces (may be a read-only view)."""
+        """(n, width) bytes of the given lines, padded with spaces (may be a read-only view)."""
         f = self.files[b.file]
         arr = np.frombuffer(f.data, dtype=np.uint8)
         n = len(lines)
