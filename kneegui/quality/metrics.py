@@ -160,7 +160,13 @@ class QualityEvaluator:
         -------
         QualityResult
         """
-        xyz_t = np.ascontiguousarray(np.asarray(coords, dtype=np.float64).T)
+        xyz = np.asarray(coords, dtype=np.float64)
+        n_selected = sum(
+            len(c) if rows is None else (len(np.atleast_1d(rows[t])) if t in rows else 0)
+            for t, c in self._conn.items()
+        )
+        # component-major copy of every node pays off only when most elements are measured
+        xyz_t = np.ascontiguousarray(xyz.T) if 4 * n_selected > len(xyz) else None
         out: dict[str, ElementQuality] = {}
         for etype, conn in self._conn.items():
             if rows is None:
@@ -171,7 +177,7 @@ class QualityEvaluator:
                 sub = conn[sel]
             else:
                 continue
-            values = self._run(etype, xyz_t, sub)
+            values = self._run(etype, xyz, xyz_t, sub)
             out[etype] = ElementQuality(
                 etype=etype,
                 rows=sel,
@@ -181,7 +187,11 @@ class QualityEvaluator:
         return QualityResult(out)
 
     def _run(
-        self, etype: str, xyz_t: NDArray[np.float64], conn: NDArray[np.int64]
+        self,
+        etype: str,
+        xyz: NDArray[np.float64],
+        xyz_t: NDArray[np.float64] | None,
+        conn: NDArray[np.int64],
     ) -> dict[str, NDArray[np.float64]]:
         kernel = KERNELS[etype][0]
         m = len(conn)
@@ -189,7 +199,10 @@ class QualityEvaluator:
 
         def work(start: int) -> None:
             block = conn[start : start + _CHUNK]
-            pts = [xyz_t[:, block[:, k]] for k in range(block.shape[1])]
+            if xyz_t is not None:
+                pts = [xyz_t[:, block[:, k]] for k in range(block.shape[1])]
+            else:
+                pts = [np.ascontiguousarray(xyz[block[:, k]].T) for k in range(block.shape[1])]
             with np.errstate(invalid="ignore", divide="ignore"):
                 values = kernel(pts)
             for k in METRICS:
