@@ -42,6 +42,15 @@ _NL, _CR, _STAR, _DOLLAR, _SPACE, _COMMA, _TAB = 10, 13, 42, 36, 32, 44, 9
 
 STANDARD, I10, LONG = "standard", "i10", "long"
 _CHUNK = 262_144  # cards parsed per vectorised step
+_KEYWORD_NAME = re.compile(r"^[A-Z][A-Z0-9_]*$")
+#: First word of every LS-DYNA keyword family (R14 manual volumes I-III); others get a warning.
+_KEYWORD_FAMILIES = frozenset(
+    "AIRBAG ALE BATTERY BOUNDARY CASE CESE CHANGE CHEMISTRY COMMENT COMPONENT CONSTRAINED "
+    "CONTACT CONTROL COSIM DAMPING DATABASE DEFINE DEFORMABLE DELETE DUALCESE EF ELEMENT EM END "
+    "EOS FATIGUE FREQUENCY HOURGLASS ICFD IGA INCLUDE INITIAL INTEGRATION INTERFACE KEYWORD LOAD "
+    "LSO MAT MESH MODULE NODE PARAMETER PART PERTURBATION RIGID RIGIDWALL RVE SECTION SENSOR SET "
+    "STOCHASTIC TERMINATION TITLE TRANSLATE USER ISPG PARTICLE SPH".split()
+)
 
 
 @dataclass
@@ -148,7 +157,7 @@ class _DeckReader:
         nl = np.flatnonzero(arr == _NL)
         starts = np.concatenate([[0], nl + 1]).astype(np.int64)
         ends = np.concatenate([nl, [len(data)]]).astype(np.int64)
-        if len(data) and data.endswith(b"\n"):
+        if data.endswith(b"\n") or not data:
             starts, ends = starts[:-1], ends[:-1]
         has_cr = (ends > starts) & (arr[np.maximum(ends - 1, 0)] == _CR) if len(arr) else ends > 0
         ends = ends - has_cr.astype(np.int64)
@@ -213,6 +222,9 @@ class _DeckReader:
         for k, kw_line in enumerate(kw_lines.tolist()):
             header = self._line(f, kw_line).decode("latin-1")
             name, fmt, options = self._keyword(header)
+            if not _KEYWORD_NAME.match(name):
+                raise self._fail(fi, kw_line, f"{header.strip()[:40]!r} is not a keyword name")
+            self._check_keyword_options(fi, kw_line, name, options)
             lo, hi = kw_line + 1, int(bounds[k + 1])
             data_lines = lo + np.flatnonzero(data_mask[lo:hi])
             block = _Block(fi, name, fmt, kw_line, data_lines)
@@ -220,6 +232,22 @@ class _DeckReader:
                 f.end_offset = int(f.line_starts[kw_line])
                 break
             self._dispatch(block, options, stack)
+
+    def _check_keyword_options(self, fi: int, line: int, name: str, options: str) -> None:
+        """Refuse text after a keyword name that is not an option; warn on unknown families."""
+        rest = options.strip()
+        if rest[:1] in ("+", "-", "%"):
+            rest = rest[1:].strip()
+        if rest and not rest.startswith("$") and name != "KEYWORD":
+            tokens = rest.split("$", 1)[0].split()
+            if not all(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*=\S*", t) for t in tokens):
+                raise self._fail(fi, line, f"unexpected text after *{name}: {rest[:40]!r}")
+        family = name.split("_", 1)[0]
+        if family not in _KEYWORD_FAMILIES:
+            self.warnings.append(
+                f"{self.files[fi].path}:{line + 1}: *{name} is not a keyword family kneegui "
+                "knows; kept verbatim"
+            )
 
     def _keyword(self, header: str) -> tuple[str, str, str]:
         text = header.rstrip()
