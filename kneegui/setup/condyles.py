@@ -193,19 +193,61 @@ def _outline(ang, rad, in_arc, bin_deg: float, tol: float) -> NDArray[np.bool_]:
     return outer
 
 
-def _trimmed_circle(points: NDArray[np.float64], sel: NDArray[np.bool_], tol: float):
-    """Fit, then drop the worst-fitting points until every kept one is within ``tol``."""
-    sel = sel.copy()
-    while True:
-        if sel.sum() < 5:
-            return None, sel
-        fit = fit_circle_2d(points[sel])
-        res = np.abs(fit.residuals(points))
-        worst = res[sel].max()
-        if worst <= tol:
-            return fit, sel
-        cut = max(tol, min(0.8 * worst, 3.0 * float(np.median(res[sel]))))
-        sel &= res <= cut
+def _circles_through(p1, p2, p3):
+    """Centres (T, 2) and radii (T,) of the circles through point triples (NaN if collinear)."""
+    ax, ay = p1[:, 0], p1[:, 1]
+    bx, by = p2[:, 0], p2[:, 1]
+    cx, cy = p3[:, 0], p3[:, 1]
+    d = 2.0 * (ax * (by - cy) + bx * (cy - ay) + cx * (ay - by))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a2, b2, c2 = ax**2 + ay**2, bx**2 + by**2, cx**2 + cy**2
+        ux = (a2 * (by - cy) + b2 * (cy - ay) + c2 * (ay - by)) / d
+        uy = (a2 * (cx - bx) + b2 * (ax - cx) + c2 * (bx - ax)) / d
+    centres = np.column_stack([ux, uy])
+    return centres, np.hypot(ax - ux, ay - uy)
+
+
+def _consensus_circle(
+    points: NDArray[np.float64], radius_range: tuple[float, float], tol: float, seed: int = 0
+) -> NDArray[np.bool_]:
+    """Inliers (within ``tol``) of the best-supported circle with a radius in range.
+
+    Every triple is tried for small sets, 4000 random triples (fixed seed) otherwise; the circle
+    with the lowest truncated quadratic cost (MSAC) wins. Robust to a flat facet or a metaphysis
+    curve beside the arc.
+    """
+    n = len(points)
+    if n < 3:
+        return np.zeros(n, dtype=bool)
+    if n <= 30:
+        tri = np.array(np.triu_indices(n, 1)).T
+        triples = np.array([(i, j, k) for i, j in tri for k in range(j + 1, n)])
+    else:
+        rng = np.random.default_rng(seed)
+        triples = np.sort(rng.integers(0, n, size=(4000, 3)), axis=1)
+        triples = triples[(triples[:, 0] < triples[:, 1]) & (triples[:, 1] < triples[:, 2])]
+    if len(triples) == 0:
+        return np.zeros(n, dtype=bool)
+    centres, radii = _circles_through(
+        points[triples[:, 0]], points[triples[:, 1]], points[triples[:, 2]]
+    )
+    ok = np.isfinite(radii) & (radii >= radius_range[0]) & (radii <= radius_range[1])
+    if not ok.any():
+        return np.zeros(n, dtype=bool)
+    centres, radii = centres[ok], radii[ok]
+    best_inliers, best_cost = None, np.inf
+    for start in range(0, len(radii), 2000):
+        c, r = centres[start : start + 2000], radii[start : start + 2000]
+        dist = np.hypot(points[None, :, 0] - c[:, None, 0], points[None, :, 1] - c[:, None, 1])
+        res = np.abs(dist - r[:, None])
+        # MSAC: truncated quadratic cost prefers the circle the points lie tightly on over a
+        # compromise that merely keeps more of them within the tolerance
+        cost = np.minimum(res, tol) ** 2
+        total = cost.sum(axis=1)
+        k = int(np.argmin(total))
+        if total[k] < best_cost:
+            best_cost, best_inliers = float(total[k]), res[k] <= tol
+    return best_inliers
 
 
 def _profile_selection(
@@ -214,42 +256,41 @@ def _profile_selection(
     """Nodes on the circular posterior profile of one condyle band.
 
     ``local`` columns: anterior, superior. The outline (outermost nodes per 5-degree sector about
-    a provisional centre, from slightly below the distal point to ``max_arc_deg``) is seeded with
-    its most posterior part - the flexion facet, circular on every knee - fitted with a circle
-    (trimming nodes off it), then grown sector by sector along the outline while the nodes stay
-    within ``tol`` of the refitted circle. A flatter distal facet or the metaphysis above the arc
-    stop the growth. Finally every node within ``tol`` of the circle in the grown range is kept.
+    a provisional centre, from slightly below the distal point to ``max_arc_deg``) is searched
+    for the circle of plausible radius (0.4-2 ``r0``) the outline nodes lie on most tightly
+    (MSAC consensus of point triples, residuals truncated at ``tol``); a flatter distal facet or
+    the metaphysis above the arc fall off it. The circle is refitted by least squares on its
+    inliers, the tolerance is tightened to their robust scatter, and every node of the band
+    within that tolerance of the circle, inside the inliers' angular range, is selected.
     """
     ap, h = local[:, 0], local[:, 1]
     centre = np.array([ap.min() + r0, h.min() + r0])
     ang, rad = _angles(local, centre)
     in_arc = (ang >= -10.0) & (ang <= max_arc_deg)
     outline = _outline(ang, rad, in_arc, 5.0, tol)
-    seed = outline & (ap <= ap[outline].min() + 0.25 * r0)
-    fit, sel = _trimmed_circle(local, seed, tol)
-    if fit is None:
-        # rough surfaces: accept the seed's own scatter
-        fit, sel = _trimmed_circle(local, seed, 3.0 * fit_circle_2d(local[seed]).rms)
-        if fit is None:
+    cand = np.flatnonzero(outline)
+    inliers = _consensus_circle(local[cand], (0.4 * r0, 2.0 * r0), tol)
+    if inliers.sum() < 5:
+        return np.zeros(len(local), dtype=bool)
+    fit = fit_circle_2d(local[cand[inliers]])
+    # tighten to the scatter of the inliers (robust sigma, re-estimated as the fit improves), so
+    # the ends where a flatter facet or the metaphysis leave the arc tangentially are dropped
+    tight = tol
+    for _ in range(20):
+        sigma = 1.4826 * float(np.median(np.abs(fit.residuals(local[cand[inliers]]))))
+        tight = min(tol, max(0.005 * r0, 3.0 * sigma))
+        ang, _ = _angles(local, fit.center)
+        lo, hi = ang[cand[inliers]].min(), ang[cand[inliers]].max()
+        new = (np.abs(fit.residuals(local[cand])) <= tight) & (ang[cand] >= lo) & (ang[cand] <= hi)
+        if new.sum() < 5:
             return np.zeros(len(local), dtype=bool)
-    tol = max(tol, 3.0 * fit.rms)
-    for _ in range(100):
-        ang, rad = _angles(local, fit.center)
-        outline = _outline(ang, rad, (ang >= -10.0) & (ang <= max_arc_deg), 5.0, tol)
-        lo, hi = ang[sel].min(), ang[sel].max()
-        grown = (
-            outline
-            & (np.abs(fit.residuals(local)) <= tol)
-            & (ang >= lo - 10.0)
-            & (ang <= hi + 10.0)
-        )
-        if grown.sum() < 5 or np.array_equal(grown, sel):
+        if np.array_equal(new, inliers):
             break
-        sel = grown
-        fit = fit_circle_2d(local[sel])
+        inliers = new
+        fit = fit_circle_2d(local[cand[inliers]])
     ang, _ = _angles(local, fit.center)
-    lo, hi = ang[sel].min(), ang[sel].max()
-    return (np.abs(fit.residuals(local)) <= tol) & (ang >= lo) & (ang <= hi)
+    lo, hi = ang[cand[inliers]].min(), ang[cand[inliers]].max()
+    return (np.abs(fit.residuals(local)) <= tight) & (ang >= lo - 1e-9) & (ang <= hi + 1e-9)
 
 
 def suggest_condyle_nodes(
@@ -258,8 +299,8 @@ def suggest_condyle_nodes(
     side: str,
     tibia_part_ids: Iterable[int] | None = None,
     patella_part_ids: Iterable[int] | None = None,
-    band_fraction: float = 0.08,
-    max_arc_deg: float = 140.0,
+    band_fraction: float = 0.2,
+    max_arc_deg: float = 125.0,
     tolerance_mm: float = 0.3,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Suggest the posterior lateral and medial condyle node sets.
@@ -301,27 +342,53 @@ def suggest_condyle_nodes(
         surf = model.part_node_indices(femur_ids)
     pts = model.coords[surf]
     origin = np.asarray(frame["distal_point"])
-    local = np.column_stack([(pts - origin) @ ant, (pts - origin) @ sup, (pts - origin) @ med])
-    region = local[:, 1] < 0.6 * width
-    ml = local[:, 2]
-    ml_region = ml[region]
-    ml_mid = 0.5 * (ml_region.min() + ml_region.max())
     r0 = 0.22 * width
-    result = []
-    for sign, name in ((-1.0, "lateral"), (1.0, "medial")):
-        half = region & (sign * (ml - ml_mid) > 0.1 * width)
-        if half.sum() < 5:
-            raise GeometryError(f"no {name} condyle found on the femur surface")
-        h_low = local[half, 1].min()
-        bottom = half & (local[:, 1] <= h_low + 0.02 * width)
-        band_centre = float(np.median(ml[bottom]))
-        band = half & (np.abs(ml - band_centre) <= band_fraction * width)
-        idx = np.flatnonzero(band)
-        keep = _profile_selection(local[idx][:, :2], r0, max_arc_deg, tolerance_mm)
-        chosen = surf[idx[keep]]
-        if len(chosen) < 5:
-            raise GeometryError(
-                f"only {len(chosen)} {name} condyle nodes found on the femur surface"
+    left = np.cross(sup, ant)
+    side_sign = 1.0 if np.dot(med, left) > 0 else -1.0
+    # The medial-lateral direction from the bone's spread is a few degrees off; nodes of one
+    # condyle then do not line up in the sagittal projection. Refine it from the fitted centres
+    # (as the F-E axis), tightening the tolerance as the rows line up.
+    schedule = (4.0, 2.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    chosen: list[NDArray[np.int64]] = []
+    for step, factor in enumerate(schedule):
+        tol = factor * tolerance_mm
+        local = np.column_stack([(pts - origin) @ ant, (pts - origin) @ sup, (pts - origin) @ med])
+        region = local[:, 1] < 0.6 * width
+        ml = local[:, 2]
+        ml_mid = 0.5 * (ml[region].min() + ml[region].max())
+        chosen, centres = [], []
+        for sign, name in ((-1.0, "lateral"), (1.0, "medial")):
+            half = region & (sign * (ml - ml_mid) > 0.1 * width)
+            if half.sum() < 5:
+                raise GeometryError(f"no {name} condyle found on the femur surface")
+            h_low = local[half, 1].min()
+            bottom = half & (local[:, 1] <= h_low + 0.15 * width)
+            band_centre = 0.5 * float(ml[bottom].min() + ml[bottom].max())
+            band = half & (np.abs(ml - band_centre) <= band_fraction * width)
+            idx = np.flatnonzero(band)
+            keep = _profile_selection(local[idx][:, :2], r0, max_arc_deg, tol)
+            if keep.sum() < 5:
+                raise GeometryError(
+                    f"only {int(keep.sum())} {name} condyle nodes found on the femur surface"
+                )
+            chosen.append(surf[idx[keep]])
+            fit = fit_circle_2d(local[idx[keep]][:, :2])
+            centres.append(
+                origin
+                + fit.center[0] * ant
+                + fit.center[1] * sup
+                + local[idx[keep], 2].mean() * med
             )
-        result.append(np.sort(model.node_ids[chosen]))
-    return result[0], result[1]
+        if step == len(schedule) - 1:
+            break
+        gca = centres[1] - centres[0]
+        gca = gca - (gca @ sup) * sup
+        if np.linalg.norm(gca) < 0.2 * width:
+            break
+        new_med = unit(gca, "medial-lateral direction")
+        settled = factor == 1.0 and float(new_med @ med) > np.cos(np.radians(0.01))
+        med = new_med
+        ant = unit(np.cross(side_sign * med, sup), "anterior direction")
+        if settled:
+            break
+    return tuple(np.sort(model.node_ids[c]) for c in chosen)  # type: ignore[return-value]

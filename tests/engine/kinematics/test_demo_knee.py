@@ -16,7 +16,7 @@ if not hasattr(demo, "generate_demo_leg"):
 
 @pytest.fixture(scope="module", params=["right", "left"])
 def leg(request):
-    return demo.generate_demo_leg(elements=2000, side=request.param)
+    return demo.generate_demo_leg(elements=20000, side=request.param)
 
 
 @pytest.fixture(scope="module")

@@ -57,7 +57,7 @@ def test_flat_distal_facet_is_left_out(flat_deg, noise):
     data["landmarks"]["lateral_condyle"] = lateral.tolist()
     data["landmarks"]["medial_condyle"] = medial.tolist()
     axes = compute_joint_axes(knee.model.coords, load_setup(data, knee.model))
-    tol = 1e-6 if noise == 0 else 0.1
+    tol = 1e-6 if noise == 0 else 0.3
     assert axes.lateral_fit.radius == pytest.approx(20.5, abs=tol)
     assert axes.medial_fit.radius == pytest.approx(23.3, abs=tol)
 
