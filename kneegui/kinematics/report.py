@@ -31,6 +31,7 @@ def kinematics_report(elements: int = 20000, side: str = "right") -> dict[str, A
     from kneegui.geometry.axes import compute_joint_axes, measure_flexion
     from kneegui.kinematics.posing import apply_bone_transforms, solve_bone_pose
     from kneegui.setup.format import load_setup
+    from kneegui.setup.landmarks import suggest_setup
 
     leg = generate_demo_leg(elements=elements, side=side)
     t0 = time.perf_counter()
@@ -61,7 +62,19 @@ def kinematics_report(elements: int = 20000, side: str = "right") -> dict[str, A
                 "pose_seconds": s1 - s0,
             }
         )
+    s0 = time.perf_counter()
+    suggested_setup = load_setup(suggest_setup(leg.model, side), leg.model)
+    suggested = compute_joint_axes(leg.model.coords, suggested_setup)
+    s1 = time.perf_counter()
     return {
+        "suggested": {
+            "lateral_radius": suggested.lateral_fit.radius,
+            "medial_radius": suggested.medial_fit.radius,
+            "initial_flexion": suggested.initial_flexion_deg,
+            "lateral_nodes": len(suggested_setup.lateral_condyle_ids),
+            "medial_nodes": len(suggested_setup.medial_condyle_ids),
+            "seconds": s1 - s0,
+        },
         "side": side,
         "nodes": leg.model.n_nodes,
         "elements": leg.model.n_elements,
@@ -95,6 +108,12 @@ def main(argv: list[str] | None = None) -> None:
     print(f"load_setup {ms_setup:.1f} ms, axes {ms_axes:.1f} ms")
     for w in rep["warnings"]:
         print(f"warning: {w}")
+    sug = rep["suggested"]
+    print(
+        f"suggest_setup: lateral {sug['lateral_radius']:.3f} mm ({sug['lateral_nodes']} nodes), "
+        f"medial {sug['medial_radius']:.3f} mm ({sug['medial_nodes']} nodes), initial flexion "
+        f"{sug['initial_flexion']:.3f} deg, {sug['seconds']:.2f} s"
+    )
     print(
         "target | measured | F-E rot | tibial int. rot | patellar flex | tilt "
         "| max rel dist change | ms"
