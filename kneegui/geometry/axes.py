@@ -48,7 +48,7 @@ def condyle_fit_limits() -> dict[str, float]:
         return {row["name"]: float(row["value"]) for row in csv.DictReader(fh)}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Axis:
     """A directed line: ``point`` (3,) and unit ``direction`` (3,)."""
 
@@ -63,7 +63,7 @@ class Axis:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class JointAxes:
     """The knee's axes in one pose.
 
@@ -207,7 +207,7 @@ def flexion_angle_deg(
     return float(np.degrees(np.arctan2(np.cross(f, t) @ left, f @ t)))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _LandmarkPositions:
     lateral: NDArray[np.float64]
     medial: NDArray[np.float64]
@@ -266,7 +266,7 @@ def measure_flexion(coords: ArrayLike, reference: JointSetup | JointAxes) -> flo
 SAGITTAL_REFINEMENTS = 5
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _SagittalFrame:
     superior: NDArray[np.float64]
     normal: NDArray[np.float64]

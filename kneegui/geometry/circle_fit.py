@@ -18,7 +18,7 @@ from scipy.optimize import least_squares
 from kneegui.errors import GeometryError
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CircleFit:
     """A fitted circle.
 

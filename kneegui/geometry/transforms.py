@@ -28,7 +28,7 @@ def rotation_matrix(axis: ArrayLike, angle_deg: float) -> NDArray[np.float64]:
     return c * np.eye(3) + s * kx + (1.0 - c) * np.outer(k, k)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RigidTransform:
     """``x -> rotation @ x + translation``.
 

@@ -39,7 +39,7 @@ FLEXION_TOLERANCE_DEG = 1e-9
 MAX_ITERATIONS = 50
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BonePose:
     """The rigid motion of the bones for one target flexion.
 

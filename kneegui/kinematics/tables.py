@@ -44,7 +44,7 @@ QUANTITIES: tuple[str, ...] = ("tibial_rotation", "patellar_flexion", "patellar_
 TABLES_DIR = RESOURCES_DIR / "kinematics"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class KinematicTable:
     """A piecewise-linear curve ``value_deg(flexion_deg)``.
 

@@ -55,7 +55,7 @@ OPTIONAL_KEYS = ("moving_segment", "kinematics", "skin_contours", "description",
 N_ANCHORS = 12
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LandmarkPoint:
     """One axis point: a node of the model or a fixed coordinate attached to a bone.
 
@@ -99,7 +99,7 @@ class LandmarkPoint:
         return [float(v) for v in self.coords]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class JointSetup:
     """A validated setup, bound to the model it was checked against. Immutable.
 

@@ -31,7 +31,7 @@ PART_TITLES = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SyntheticKnee:
     """The model, its setup dict, and the designed values."""
 

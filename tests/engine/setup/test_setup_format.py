@@ -263,3 +263,10 @@ SEMANTIC_ONLY = {
     ("kinematics.tibial_rotation", "nonexistent"),
     ("kinematics.tibial_rotation", "missing.csv"),
 }
+
+
+def test_setups_compare_by_identity_and_hash(knee):
+    a = load_setup(knee.setup, knee.model)
+    b = load_setup(knee.setup, knee.model)
+    assert a == a and a != b  # no element-wise array comparison error
+    assert len({a, b}) == 2
