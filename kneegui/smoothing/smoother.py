@@ -162,54 +162,85 @@ def corner_quality(
     return jac, scaled
 
 
+def ordered_quality(jac: NDArray, scaled: NDArray) -> NDArray:
+    """A quality that orders valid and invalid elements: J* = J if J > 0, else scaled - 1.
+
+    Valid elements keep their corner Jacobian (0, 1]; an invalid element scores its worst
+    scaled corner determinant minus one, in [-2, -1], which rises steadily while it is being
+    untangled (the ratio J itself jumps between -1 and -infinity on the way).
+    """
+    return np.where(jac > 0, jac, np.minimum(scaled, 0.0) - 1.0)
+
+
+_EDGE_INDEX = {t: np.array(e, dtype=np.int64) for t, e in ELEMENT_EDGES.items()}
+
+
+def edge_ratio(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
+    """Longest / shortest edge of each element (all its edges; ``inf`` for a zero edge).
+
+    Parameters
+    ----------
+    points : (m, k, 3) ndarray of float
+        Node positions of ``m`` elements.
+    etype : str
+        Element type.
+    """
+    e = _EDGE_INDEX[etype]
+    d = points[:, e[:, 1]] - points[:, e[:, 0]]
+    sq = np.einsum("mek,mek->me", d, d)
+    lo = sq.min(axis=1)
+    out = np.full(len(sq), np.inf)
+    np.divide(sq.max(axis=1), lo, out=out, where=lo > 0)
+    return np.sqrt(out)
+
+
 @dataclass(frozen=True)
-class _Neighbourhood_Score:
+class _NeighbourhoodScore:
     """Per-node summary of the elements sharing the node."""
 
-    worst: NDArray  # smallest corner Jacobian
-    total: NDArray  # summed objective terms
-    tangle: NDArray  # summed negative scaled corner determinants (0 when nothing is inverted)
+    worst: NDArray  # smallest ordered quality J*
+    total: NDArray  # sum of J* plus (count x worst): raise the minimum first
     inverted: NDArray  # number of elements with Jacobian <= 0
+    worst_jacobian: NDArray  # smallest corner Jacobian (the reported measure)
+    worst_aspect: NDArray  # largest edge ratio
 
 
-def _score(jac: NDArray, scaled: NDArray, owner: NDArray, n: int) -> _Neighbourhood_Score:
+def _score(
+    jac: NDArray, scaled: NDArray, aspect: NDArray, owner: NDArray, n: int
+) -> _NeighbourhoodScore:
+    star = ordered_quality(jac, scaled)
     worst = np.full(n, np.inf)
-    np.minimum.at(worst, owner, jac)
+    np.minimum.at(worst, owner, star)
+    worst_jacobian = np.full(n, np.inf)
+    np.minimum.at(worst_jacobian, owner, jac)
     count = np.bincount(owner, minlength=n)
-    total = np.bincount(owner, _objective_terms(jac, scaled), minlength=n)
-    # the worst element counts as much as all of them together: raise the minimum first
-    total = total + count * np.maximum(np.where(count > 0, worst, 0.0), -1.0)
-    return _Neighbourhood_Score(
+    total = np.bincount(owner, star, minlength=n) + count * np.where(count > 0, worst, 0.0)
+    worst_aspect = np.zeros(n)
+    np.maximum.at(worst_aspect, owner, aspect)
+    return _NeighbourhoodScore(
+        worst_aspect=worst_aspect,
         worst=worst,
         total=total,
-        tangle=np.bincount(owner, np.minimum(scaled, 0.0), minlength=n),
         inverted=np.bincount(owner, (jac <= 0).astype(float), minlength=n),
+        worst_jacobian=worst_jacobian,
     )
 
 
-def _accept(old: _Neighbourhood_Score, new: _Neighbourhood_Score, floor: float) -> NDArray:
-    """Which moves to keep.
-
-    (a) the worst Jacobian around the node does not drop and the summed quality rises; or
-    (b) while the neighbourhood holds an invalid element (Jacobian <= 0): it becomes less
-    tangled (negative scaled corners shrink), no more elements are invalid, and no element falls
-    below ``floor`` (the worst Jacobian of the whole region before smoothing), so the region's
-    worst value can never get worse.
-    """
+def _accept(
+    old: _NeighbourhoodScore, new: _NeighbourhoodScore, floor: float, aspect_limit: float
+) -> NDArray:
+    """Which moves to keep: the worst J* around the node does not drop, the summed J* rises,
+    no more elements are invalid, no corner Jacobian falls below ``floor`` (the worst of the
+    region before smoothing, so that value can never get worse), and the largest edge ratio
+    stays below ``max(its old value, aspect_limit)``."""
     eps = 1e-12 * np.maximum(np.abs(old.total), 1.0)
-    improve = (new.worst >= old.worst) & (new.total > old.total + eps)
-    untangle = (
-        (old.worst <= 0.0)
+    return (
+        (new.worst >= old.worst)
+        & (new.total > old.total + eps)
         & (new.inverted <= old.inverted)
-        & (new.tangle > old.tangle + 1e-12)
-        & (new.worst >= floor)
+        & (new.worst_jacobian >= floor)
+        & (new.worst_aspect <= np.maximum(old.worst_aspect, aspect_limit))
     )
-    return improve | untangle
-
-
-def _objective_terms(jac: NDArray, scaled: NDArray) -> NDArray:
-    """Per-element value the smoother maximises: Jacobian (clipped at -1) + negative corners."""
-    return np.maximum(jac, -1.0) + np.minimum(scaled, 0.0)
 
 
 # ---------------------------------------------------------------------- neighbourhoods
@@ -300,16 +331,20 @@ def _csr_gather(ptr: NDArray, values: NDArray, rows: NDArray) -> tuple[NDArray, 
 
 def _evaluate(
     nb: _Neighbourhood, coords: NDArray[np.float64], handles: NDArray[np.int64]
-) -> tuple[NDArray, NDArray]:
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Corner Jacobian, worst scaled corner and edge ratio of the given elements."""
     jac = np.empty(len(handles))
     scaled = np.empty(len(handles))
+    aspect = np.empty(len(handles))
     types = nb.handle_type[handles]
     for ti, etype in enumerate(nb.types):
         sel = np.flatnonzero(types == ti)
         if len(sel):
             rows = nb.handle_row[handles[sel]]
-            jac[sel], scaled[sel] = corner_quality(coords[nb.conn[ti][rows]], etype)
-    return jac, scaled
+            points = coords[nb.conn[ti][rows]]
+            jac[sel], scaled[sel] = corner_quality(points, etype)
+            aspect[sel] = edge_ratio(points, etype)
+    return jac, scaled, aspect
 
 
 def _colour(
@@ -366,10 +401,11 @@ def smooth_mesh(
     relaxation: tuple[float, ...] = (1.0, 0.5, 0.25),
     optimize: bool = True,
     target: float = 0.6,
-    max_optimized_nodes: int = 3000,
+    max_optimized_nodes: int = 1500,
     max_evaluations: int = 60,
     passes: int = 3,
     sliding_feature_angle: float = 30.0,
+    aspect_limit: float = 5.0,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
 ) -> tuple[NDArray[np.float64], SmoothingReport]:
@@ -398,12 +434,16 @@ def smooth_mesh(
         Both stages work on the nodes whose worst neighbouring corner Jacobian is below this
         (stage 1 also on the nodes sharing an element with them).
     max_optimized_nodes : int
-        Stage 2 handles at most this many nodes (the worst first).
+        Stage 2 runs at most this many node optimisations in all (the worst neighbourhoods
+        first); each costs a few milliseconds.
     max_evaluations : int
         Objective evaluations per node in stage 2.
     passes : int
         Rounds of stage 1 + stage 2 (stops early when a round changes nothing, or when no
         element is invalid and every neighbourhood reaches ``target``).
+    aspect_limit : float
+        A move may not raise the largest edge ratio (longest / shortest edge) of the elements
+        sharing the node above ``max(its value before the move, aspect_limit)``.
     progress : callable(fraction, message), optional
         Called with the fraction done (0-1) and a short message.
     cancel : callable() -> bool, optional
@@ -478,7 +518,7 @@ def smooth_mesh(
     nb = _build_neighbourhood(blocks, movable, n_nodes)
     n_mov = len(movable)
     all_handles = np.arange(nb.offset[-1])
-    jac, scaled = _evaluate(nb, coords, all_handles)
+    jac, scaled, aspect = _evaluate(nb, coords, all_handles)
     worst_before = float(jac.min()) if len(jac) else float("nan")
     inverted_before = int(np.count_nonzero(jac <= 0))
     # per-node projector onto the allowed directions (identity for free nodes)
@@ -510,7 +550,10 @@ def smooth_mesh(
             axis=1,
         )
         scale = float(np.median(edge_len)) if len(edge_len) else 1.0
-    state = _State(nb, coords, jac, scaled, movable, projector, basis, worst_before, scale)
+    state = _State(
+        nb, coords, jac, scaled, aspect, movable, projector, basis, worst_before, scale,
+        float(aspect_limit),
+    )  # fmt: skip
     moves = sweeps = optimized = improved = 0
     n_passes = max(int(passes), 1) if n_mov else 0
     dirty = np.ones(n_mov, dtype=bool)  # nodes whose neighbourhood changed since last tried
@@ -530,9 +573,10 @@ def smooth_mesh(
         )  # fmt: skip
         moves += m
         sweeps += s_
-        if optimize:
+        if optimize and optimized < max_optimized_nodes:
             o, i_ = _optimisation_stage(
-                state, target, max_optimized_nodes, max_evaluations, node_progress, check_cancel,
+                state, target, max_optimized_nodes - optimized, max_evaluations, node_progress,
+                check_cancel,
                 dirty,
             )  # fmt: skip
             optimized += o
@@ -575,11 +619,13 @@ class _State:
     coords: NDArray[np.float64]
     jac: NDArray[np.float64]
     scaled: NDArray[np.float64]
+    aspect: NDArray[np.float64]
     movable: NDArray[np.int64]
     projector: NDArray[np.float64]
     basis: dict[int, NDArray[np.float64]]
     floor: float
     scale: float
+    aspect_limit: float
 
 
 def _laplacian_stage(
@@ -597,7 +643,7 @@ def _laplacian_stage(
     Each sweep works on the nodes whose neighbourhood is below ``target`` and the nodes
     sharing an element with them.
     """
-    nb, coords, jac, scaled = st.nb, st.coords, st.jac, st.scaled
+    nb, coords, jac, scaled, aspect = st.nb, st.coords, st.jac, st.scaled, st.aspect
     n_mov = len(st.movable)
     all_handles, all_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
     conflict_ptr, conflict_nbrs = conflicts
@@ -613,7 +659,7 @@ def _laplacian_stage(
         moved_this_sweep = 0
         largest_move = 0.0
         node_min = np.full(n_mov, np.inf)
-        np.minimum.at(node_min, all_owner, jac[all_handles])
+        np.minimum.at(node_min, all_owner, ordered_quality(jac[all_handles], scaled[all_handles]))
         poor = node_min < target
         working = poor.copy()
         working[conflict_owner[poor[conflict_nbrs]]] = True
@@ -632,21 +678,22 @@ def _laplacian_stage(
             step = np.einsum("nij,nj->ni", st.projector[group], mean - coords[nodes])
             active = np.linalg.norm(step, axis=1) > tolerance
             handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, group)
-            old = _score(jac[handles], scaled[handles], h_owner, len(group))
+            old = _score(jac[handles], scaled[handles], aspect[handles], h_owner, len(group))
             start = coords[nodes].copy()
             for omega in relaxation:
                 if not active.any():
                     break
                 coords[nodes[active]] = start[active] + omega * step[active]
                 sel = active[h_owner]
-                new_j, new_s = _evaluate(nb, coords, handles[sel])
-                new = _score(new_j, new_s, h_owner[sel], len(group))
-                accept = active & _accept(old, new, st.floor)
+                new_j, new_s, new_a = _evaluate(nb, coords, handles[sel])
+                new = _score(new_j, new_s, new_a, h_owner[sel], len(group))
+                accept = active & _accept(old, new, st.floor, st.aspect_limit)
                 reject = active & ~accept
                 coords[nodes[reject]] = start[reject]  # put rejected nodes back
                 kept = accept[h_owner[sel]]
                 jac[handles[sel][kept]] = new_j[kept]
                 scaled[handles[sel][kept]] = new_s[kept]
+                aspect[handles[sel][kept]] = new_a[kept]
                 moved_this_sweep += int(accept.sum())
                 if accept.any():
                     largest_move = max(largest_move, omega * float(np.abs(step[accept]).max()))
@@ -685,7 +732,7 @@ def _optimisation_stage(
     n_mov = len(st.movable)
     handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
     node_min = np.full(n_mov, np.inf)
-    np.minimum.at(node_min, h_owner, st.jac[handles])
+    np.minimum.at(node_min, h_owner, ordered_quality(st.jac[handles], st.scaled[handles]))
     todo = np.flatnonzero((node_min < target) & dirty)
     todo = todo[np.lexsort((todo, node_min[todo]))][:max_nodes]
     improved = 0
@@ -693,10 +740,7 @@ def _optimisation_stage(
         if count % 25 == 0:
             check_cancel()
             progress(count / len(todo), "optimising nodes")
-        improved += _optimise_node(
-            nb, st.coords, st.jac, st.scaled, st.movable, int(ci), st.basis, max_evaluations,
-            st.scale, st.floor,
-        )  # fmt: skip
+        improved += _optimise_node(st, int(ci), max_evaluations)
     return len(todo), improved
 
 
@@ -716,26 +760,17 @@ def _corner_determinants(
     return np.einsum("mtk,mtk->mt", np.cross(va, vb), vc)
 
 
-def _optimise_node(
-    nb: _Neighbourhood,
-    coords: NDArray[np.float64],
-    jac: NDArray[np.float64],
-    scaled: NDArray[np.float64],
-    movable: NDArray[np.int64],
-    ci: int,
-    basis: dict[int, NDArray[np.float64]],
-    max_evaluations: int,
-    scale: float,
-    floor: float,
-) -> int:
-    """Nelder-Mead on one node; updates ``coords``, ``jac``, ``scaled`` in place. 1 if improved.
+def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
+    """Nelder-Mead on one node; updates the state's arrays in place. 1 if the node improved.
 
     With one node moving, every corner determinant is an affine function of its position
     (a tetrahedron's volume is affine in each vertex; quad shells keep their starting mean
-    normal during the search), so the objective is evaluated from a precomputed affine map:
-    ``dets(x) = D0 + G (x - x0)``. The final position is re-checked with the exact measure.
+    normal during the search), so the objective is evaluated from a precomputed affine map
+    ``dets(x) = D0 + G (x - x0)``; edge ratios use the node's own edges and the fixed extremes
+    of the other edges. The final position is re-checked with the exact measures.
     """
-    node = int(movable[ci])
+    nb, coords = st.nb, st.coords
+    node = int(st.movable[ci])
     handles = nb.node_handles[nb.node_ptr[ci] : nb.node_ptr[ci + 1]]
     if len(handles) == 0:
         return 0
@@ -745,8 +780,10 @@ def _optimise_node(
     handles = handles[order]
     types = types[order]
     x0 = coords[node].copy()
-    b = basis.get(node, np.eye(3))
+    b = st.basis.get(node, np.eye(3))
     groups = []
+    other_lo, other_hi, ends, owner = [], [], [], []
+    row0 = 0
     for ti in type_ids:
         conn = nb.conn[ti][nb.handle_row[handles[types == ti]]]
         pts = coords[conn]
@@ -754,15 +791,33 @@ def _optimise_node(
         normal = None
         if etype == "quad4":
             normal = np.cross(pts[:, 2] - pts[:, 0], pts[:, 3] - pts[:, 1])
-        groups.append((etype, conn, conn == node, pts, normal))
-    distances = np.concatenate([np.linalg.norm(g[3] - x0, axis=2)[~g[2]] for g in groups])
-    local_scale = float(distances.mean()) if len(distances) else scale
-    local_scale = local_scale or scale
+        at = conn == node
+        groups.append((etype, at, pts, normal))
+        # edges: those at the node move with it, the others are fixed
+        e = _EDGE_INDEX[etype]
+        a_at, b_at = at[:, e[:, 0]], at[:, e[:, 1]]
+        length_sq = np.einsum("mek,mek->me", *(2 * [pts[:, e[:, 1]] - pts[:, e[:, 0]]]))
+        fixed = ~(a_at | b_at)
+        other_lo.append(np.where(fixed, length_sq, np.inf).min(axis=1))
+        other_hi.append(np.where(fixed, length_sq, 0.0).max(axis=1))
+        far = np.where(a_at, e[:, 1], e[:, 0])  # the other end of each edge
+        rows, cols = np.nonzero(a_at | b_at)
+        ends.append(pts[rows, far[rows, cols]])
+        owner.append(row0 + rows)
+        row0 += len(conn)
+    other_lo = np.concatenate(other_lo)
+    other_hi = np.concatenate(other_hi)
+    ends = np.concatenate(ends)
+    owner = np.concatenate(owner)
+    starts = np.searchsorted(owner, np.arange(len(other_lo)))  # every element has a node edge
+    distances = np.linalg.norm(ends - x0, axis=1)
+    local_scale = float(distances.mean()) if len(distances) else st.scale
+    local_scale = local_scale or st.scale
     width = max(CORNER_TRIPLES[g[0]].shape[0] for g in groups)
 
     def all_dets(x: NDArray[np.float64]) -> NDArray[np.float64]:
         out = []
-        for etype, _, at, pts, normal in groups:
+        for etype, at, pts, normal in groups:
             p = pts.copy()
             p[at] = x
             d = _corner_determinants(p, etype, normal)
@@ -779,28 +834,31 @@ def _optimise_node(
         ]
     )  # (dim, E * width)
     shape = d0.shape
-    volume_scale = local_scale**3
+    n_el = shape[0]
     one = np.zeros(len(handles), dtype=np.int64)
-    old = _score(jac[handles], scaled[handles], one, 1)
-    old_min = float(old.worst[0])
+    old = _score(st.jac[handles], st.scaled[handles], st.aspect[handles], one, 1)
+    old_worst = float(old.worst[0])
     old_inverted = float(old.inverted[0])
-    tangled = old_min <= 0.0
-    limit = floor if tangled else old_min
+    aspect_cap = max(float(old.worst_aspect[0]), st.aspect_limit)
+    size = np.maximum(np.abs(d0).max(axis=1), 1e-300)  # per-element determinant scale
 
     def surrogate(u: NDArray[np.float64]) -> float:
+        # J* with the worst corner scaled by the element's starting determinant size
         d = d0 + (u @ gradient).reshape(shape)
         hi = d.max(axis=1)
         lo = d.min(axis=1)
-        j = np.where(hi > 0, lo / np.where(hi > 0, hi, 1.0), -1.0)
-        mn = float(j.min())
-        value = (
-            np.maximum(j, -1.0).sum()
-            + len(j) * max(mn, -1.0)
-            + np.minimum(lo, 0.0).sum() / volume_scale
-        )
-        penalty = 10.0 * len(j) * max(0.0, limit - mn)
-        if tangled:
-            penalty += 10.0 * max(0.0, float(np.count_nonzero(j <= 0)) - old_inverted)
+        valid = lo > 0
+        star = np.where(valid, lo / np.where(valid, hi, 1.0), np.maximum(lo / size, -1.0) - 1.0)
+        worst = float(star.min())
+        value = star.sum() + n_el * worst
+        penalty = 10.0 * n_el * max(0.0, old_worst - worst)
+        penalty += 10.0 * max(0.0, float(np.count_nonzero(~valid)) - old_inverted)
+        diff = ends - (x0 + b @ u)
+        sq = np.einsum("ij,ij->i", diff, diff)
+        e_hi = np.maximum(other_hi, np.maximum.reduceat(sq, starts))
+        e_lo = np.minimum(other_lo, np.minimum.reduceat(sq, starts))
+        ratio = float(np.sqrt((e_hi / np.maximum(e_lo, 1e-300)).max()))
+        penalty += 10.0 * n_el * max(0.0, ratio - aspect_cap) / aspect_cap
         return -(value - penalty)
 
     dim = b.shape[1]
@@ -817,18 +875,19 @@ def _optimise_node(
         },
     )
     x = x0 + b @ res.x
-    js, ss = [], []
-    for etype, _, at, pts, _ in groups:
+    js, ss, asp = [], [], []
+    for etype, at, pts, _ in groups:
         p = pts.copy()
         p[at] = x
         j, s_ = corner_quality(p, etype)
         js.append(j)
         ss.append(s_)
-    j = np.concatenate(js)
-    s_ = np.concatenate(ss)
-    if _accept(old, _score(j, s_, one, 1), floor)[0]:
+        asp.append(edge_ratio(p, etype))
+    j, s_, a = np.concatenate(js), np.concatenate(ss), np.concatenate(asp)
+    if _accept(old, _score(j, s_, a, one, 1), st.floor, st.aspect_limit)[0]:
         coords[node] = x
-        jac[handles] = j
-        scaled[handles] = s_
+        st.jac[handles] = j
+        st.scaled[handles] = s_
+        st.aspect[handles] = a
         return 1
     return 0
