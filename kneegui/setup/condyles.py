@@ -280,7 +280,8 @@ def _profile_selection(
         sigma = 1.4826 * float(np.median(np.abs(fit.residuals(local[cand[inliers]]))))
         tight = min(tol, max(0.005 * r0, 3.0 * sigma))
         ang, _ = _angles(local, fit.center)
-        lo, hi = ang[cand[inliers]].min(), ang[cand[inliers]].max()
+        lo = max(ang[cand[inliers]].min(), -10.0)
+        hi = min(ang[cand[inliers]].max(), max_arc_deg)
         new = (np.abs(fit.residuals(local[cand])) <= tight) & (ang[cand] >= lo) & (ang[cand] <= hi)
         if new.sum() < 5:
             return np.zeros(len(local), dtype=bool)

@@ -7,6 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from kneegui.geometry import RigidTransform, compute_joint_axes, measure_flexion
 from kneegui.kinematics import bone_transforms, pose_bones, solve_bone_pose
@@ -176,3 +178,32 @@ def test_user_table_drives_the_tibial_rotation(tmp_path):
     pose = solve_bone_pose(axes, setup, 59.0)
     assert pose.tibial_rotation_deg == pytest.approx(-5.0)
     assert measure_flexion(pose_bones(knee.model, setup, 59.0, axes), setup) == pytest.approx(59.0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    side=st.sampled_from(["right", "left"]),
+    moving=st.sampled_from(["tibia", "femur"]),
+    initial=st.floats(-5.0, 60.0),
+    target=st.floats(-5.0, 140.0),
+    table=st.sampled_from(["default", "walker1988", "asano2001", "johal2005"]),
+)
+def test_any_pose_reaches_its_target(seed, side, moving, initial, target, table):
+    knee = build_synthetic_knee(
+        side=side,
+        flexion_deg=initial,
+        rotation=random_rotation(seed),
+        translation=[seed % 97, -(seed % 13), 500.0],
+    )
+    data = copy.deepcopy(knee.setup)
+    data["moving_segment"] = moving
+    data["kinematics"]["tibial_rotation"] = table
+    setup = load_setup(data, knee.model)
+    axes = compute_joint_axes(knee.model.coords, setup)
+    assert axes.initial_flexion_deg == pytest.approx(initial, abs=1e-6)
+    coords = pose_bones(knee.model, setup, target, axes)
+    assert measure_flexion(coords, setup) == pytest.approx(target, abs=1e-6)
+    for group in ("femur", "tibia", "patella"):
+        idx = setup.segment_nodes[group]
+        assert _max_relative_distance_change(knee.model.coords[idx], coords[idx], 30) < 1e-9
