@@ -15,6 +15,7 @@ from kneegui.smoothing import (
     smoothing_free_nodes,
     smoothing_sliding_nodes,
 )
+from kneegui.smoothing.smoother import edge_ratio
 from kneegui.smoothing.topology import boundary_node_mask
 
 
@@ -100,6 +101,11 @@ def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, bloc
     assert report.inverted_after == 0 and report.worst_jacobian_after >= 0.6
     assert report.worst_jacobian_before == pytest.approx(q_before.worst_jacobian())
     assert report.moved_nodes == np.count_nonzero(np.any(new != posed.coords, axis=1))
+    # no move raised the largest edge ratio above max(its old value, aspect_limit = 5)
+    hexes = posed.blocks["hex8"].conn
+    before = edge_ratio(posed.coords[hexes], "hex8").max()
+    after = edge_ratio(new[hexes], "hex8").max()
+    assert after <= max(before, 5.0) + 1e-12
 
 
 def test_smoothing_is_deterministic(block_model):
