@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     from PySide6.QtWidgets import QApplication
 
     from app.main_window import APPLICATION, ORGANIZATION, MainWindow
+    from app.qt_compat import protect_singletons
+
+    protect_singletons()
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setOrganizationName(ORGANIZATION)

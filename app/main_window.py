@@ -26,6 +26,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.panels import FlexionPanel, LandmarkPanel, LigamentPanel, ModelPanel, QualityPanel
+from app.qt_compat import protect_singletons
 from app.viewport import CAMERA_PRESETS, Viewport
 from app.workspace import ExportBlocked, Workspace
 from kneegui.errors import DeckError, SetupError
@@ -64,6 +65,7 @@ class MainWindow(QMainWindow):
     """kneegui's window. ``workspace`` holds all state; this class wires widgets to it."""
 
     def __init__(self, workspace: Workspace | None = None):
+        protect_singletons()
         super().__init__()
         self.setWindowTitle("kneegui — knee repositioning")
         self.setObjectName("kneegui-main")

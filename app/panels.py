@@ -9,8 +9,10 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
-from PySide6.QtCore import QSignalBlocker, Qt, Signal
+from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QColor, QIcon, QPixmap
 from PySide6.QtWidgets import (
     QCheckBox,
@@ -36,6 +38,21 @@ from app.workspace import FLEXION_RANGE, HEATMAP_METRICS, Workspace
 from kneegui.setup import ROLES
 
 SLIDER_STEPS_PER_DEGREE = 10
+
+
+@contextmanager
+def _blocked(*widgets):
+    """Block the widgets' signals while syncing them from the workspace.
+
+    (Not ``QSignalBlocker``: as a context manager in PySide6 6.12 it drops a reference to
+    ``None`` on every exit, which eventually crashes the interpreter.)
+    """
+    previous = [w.blockSignals(True) for w in widgets]
+    try:
+        yield
+    finally:
+        for w, was in zip(widgets, previous, strict=True):
+            w.blockSignals(was)
 
 
 def _swatch(colour: str) -> QIcon:
@@ -76,7 +93,7 @@ class ModelPanel(QWidget):
     def refresh(self) -> None:
         ws = self.ws
         model = ws.model
-        with QSignalBlocker(self.tree):
+        with _blocked(self.tree):
             self.tree.clear()
             self.role_boxes.clear()
             if model is None:
@@ -220,7 +237,7 @@ class LandmarkPanel(QWidget):
         self.ws.set_pick_target(key)
 
     def _sync_pick(self, target: str) -> None:
-        with QSignalBlocker(self.pick_box), QSignalBlocker(self.target):
+        with _blocked(self.pick_box), _blocked(self.target):
             self.pick_box.setChecked(bool(target))
             if target:
                 self.target.setCurrentIndex(self.target.findData(target))
@@ -295,7 +312,7 @@ class FlexionPanel(QWidget):
         enabled = ws.poser is not None
         self.slider.setEnabled(enabled)
         self.spin.setEnabled(enabled)
-        with QSignalBlocker(self.slider), QSignalBlocker(self.spin):
+        with _blocked(self.slider), _blocked(self.spin):
             self.slider.setValue(round(ws.flexion * SLIDER_STEPS_PER_DEGREE))
             self.spin.setValue(ws.flexion)
         if ws.poser is None:
@@ -330,7 +347,7 @@ class QualityPanel(QWidget):
         self.threshold_on = QCheckBox()
         self.threshold = QDoubleSpinBox()
         self.threshold.setRange(-1000, 1000)
-        self.threshold.setDecimals(2)
+        self.threshold.setDecimals(3)
         self.threshold.setValue(0.3)
         row.addWidget(self.threshold_on)
         row.addWidget(self.threshold, 1)
@@ -392,10 +409,10 @@ class QualityPanel(QWidget):
     def _on_display(self, what: str) -> None:
         ws = self.ws
         with (
-            QSignalBlocker(self.mode),
-            QSignalBlocker(self.metric),
-            QSignalBlocker(self.threshold_on),
-            QSignalBlocker(self.threshold),
+            _blocked(self.mode),
+            _blocked(self.metric),
+            _blocked(self.threshold_on),
+            _blocked(self.threshold),
         ):
             self.mode.setCurrentIndex(self.mode.findData(ws.colour_mode))
             self.metric.setCurrentIndex(self.metric.findData(ws.metric))

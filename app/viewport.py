@@ -488,7 +488,6 @@ class Viewport(QWidget):
         vx0, vy0, vx1, vy1 = ren.GetViewport()
         dx = (vx0 + (ndc[:, 0] + 1) / 2 * (vx1 - vx0)) * w
         dy = (vy0 + (ndc[:, 1] + 1) / 2 * (vy1 - vy0)) * h
-        depth = (ndc[:, 2] + 1) / 2
         a = self._to_display(rect.topLeft())
         b = self._to_display(rect.bottomRight())
         x0, x1 = sorted((a[0], b[0]))
@@ -496,25 +495,41 @@ class Viewport(QWidget):
         inside = (dx >= x0) & (dx <= x1) & (dy >= y0) & (dy <= y1) & (np.abs(ndc[:, 2]) <= 1)
         if not inside.any():
             return []
-        # visibility: compare each point's depth with the z-buffer around its pixel
-        self.render()
-        ix0, iy0 = max(int(x0), 0), max(int(y0), 0)
-        ix1, iy1 = min(int(np.ceil(x1)), w - 1), min(int(np.ceil(y1)), h - 1)
-        zarr = vtk.vtkFloatArray()
-        self.plotter.ren_win.GetZbufferData(ix0, iy0, ix1, iy1, zarr)
-        zbuf = vtk_to_numpy(zarr).reshape(iy1 - iy0 + 1, ix1 - ix0 + 1)
         cand = np.flatnonzero(inside)
-        px = np.clip(np.round(dx[cand]).astype(int) - ix0, 0, zbuf.shape[1] - 1)
-        py = np.clip(np.round(dy[cand]).astype(int) - iy0, 0, zbuf.shape[0] - 1)
-        near = np.full(len(cand), np.inf)
-        for ox in (-1, 0, 1):
-            for oy in (-1, 0, 1):
-                qx = np.clip(px + ox, 0, zbuf.shape[1] - 1)
-                qy = np.clip(py + oy, 0, zbuf.shape[0] - 1)
-                near = np.minimum(near, zbuf[qy, qx])
-        visible = depth[cand] <= near + 2e-3
+        visible = self._unoccluded(xyz[cand], pids)
+        if self.ws.clip_enabled:
+            origin = np.array(self._clip_plane.GetOrigin())
+            normal = np.array(self._clip_plane.GetNormal())
+            visible &= (xyz[cand] - origin) @ normal >= 0
         chosen = index[cand[visible]]
         return [int(i) for i in self.ws.model.node_ids[chosen]]
+
+    def _unoccluded(self, points: NDArray[np.float64], pids: list[int]) -> NDArray[np.bool_]:
+        """Which points the camera sees: no pickable surface between the eye and the point.
+
+        Casts a ray from the camera to each point through a cell locator of the pickable
+        surfaces (geometric, so it does not depend on reading the GL depth buffer).
+        """
+        merged = pv.merge([self.surfaces[p].mesh for p in pids], merge_points=False)
+        locator = vtk.vtkStaticCellLocator()
+        locator.SetDataSet(merged)
+        locator.BuildLocator()
+        cam = self.plotter.camera
+        eye = np.asarray(cam.position, dtype=float)
+        if cam.parallel_projection:
+            direction = np.asarray(cam.focal_point) - eye
+            direction /= np.linalg.norm(direction)
+        extent = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 1.0
+        out = np.zeros(len(points), dtype=bool)
+        t, sub = vtk.reference(0.0), vtk.reference(0)
+        hit, pcoords = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        for i, p in enumerate(points):
+            start = p - direction * 1e4 if cam.parallel_projection else eye
+            ray = p - start
+            length = float(np.linalg.norm(ray))
+            stop = p - ray / length * max(1e-3 * length, 1e-3 * extent)
+            out[i] = not locator.IntersectWithLine(start, stop, 1e-9, t, hit, pcoords, sub)
+        return out
 
     def apply_pick(self, ids: list[int], remove: bool) -> None:
         """Hand picked node ids to the workspace."""

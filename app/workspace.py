@@ -174,7 +174,10 @@ class Workspace(QObject):
             raise SetupError("open a deck first")
         path = Path(path)
         data = read_setup_json(path)
-        checked = load_setup(data, self.model)  # raises SetupError with the key
+        try:
+            checked = load_setup(data, self.model)
+        except SetupError as exc:  # name the file as well as the key
+            raise SetupError(exc.message, key=exc.key, path=path) from None
         self._push_undo()
         self.setup_path = path
         self.setup_dict = checked.to_dict()

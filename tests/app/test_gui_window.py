@@ -1,0 +1,414 @@
+"""The real window under Xvfb: demo, picking, slider, heat-maps, stretch, smoothing, export."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PySide6.QtCore import QPoint, Qt
+from PySide6.QtGui import QImage
+from PySide6.QtTest import QTest
+from vtk.util.numpy_support import vtk_to_numpy
+
+from app.viewport import CAMERA_PRESETS
+from app.workspace import HEATMAP_METRICS, ExportBlocked
+from kneegui.geometry import measure_flexion
+from kneegui.io.lsdyna import read_deck
+from kneegui.ligaments import ligament_short_name
+from kneegui.quality import compute_quality
+
+from .conftest import wait_idle
+
+pytestmark = pytest.mark.gui
+
+
+def widget_point(viewport, xyz) -> QPoint:
+    """Where a world point appears in the interactor widget (Qt coordinates)."""
+    ren = viewport.plotter.renderer
+    ren.SetWorldPoint(*xyz, 1.0)
+    ren.WorldToDisplay()
+    x, y, _ = ren.GetDisplayPoint()
+    h = viewport.plotter.ren_win.GetSize()[1]
+    ratio = viewport.plotter.devicePixelRatioF()
+    return QPoint(round(x / ratio), round((h - 1 - y) / ratio))
+
+
+def drag(widget, a: QPoint, b: QPoint) -> None:
+    QTest.mousePress(widget, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, a)
+    QTest.mouseMove(widget, (a + b) / 2)
+    QTest.mouseMove(widget, b)
+    QTest.mouseRelease(widget, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, b)
+
+
+def set_slider(window, qtbot, degrees: float) -> None:
+    panel = window.flexion_panel
+    panel.slider.setValue(round(degrees * 10))
+    window.viewport.flush()
+
+
+def test_opens_the_demo_with_its_setup(demo_window):
+    ws, vp = demo_window.ws, demo_window.viewport
+    assert ws.setup is not None and ws.setup_problem is None
+    counts = ws.model.element_counts()
+    assert set(vp.actors) == set(counts)
+    tree = demo_window.model_panel.tree
+    groups = {
+        tree.topLevelItem(i).text(0): int(tree.topLevelItem(i).text(2))
+        for i in range(tree.topLevelItemCount())
+    }
+    assert sum(groups.values()) == ws.model.n_elements
+    assert {"femur", "tibia", "patella", "ligament"} <= set(groups)
+    assert ws.flexion == pytest.approx(ws.poser.initial_flexion)
+    assert demo_window.flexion_panel.slider.isEnabled()
+
+
+def test_role_edit_and_visibility_from_the_part_tree(demo_window, qtbot):
+    ws, panel = demo_window.ws, demo_window.model_panel
+    pid = ws.setup_dict["roles"]["patella"][0]
+    panel.role_boxes[pid].setCurrentText("fixed")
+    assert ws.part_role(pid) == "fixed"
+    assert pid in ws.setup_dict["roles"]["fixed"]
+    ws.undo()
+    assert ws.part_role(pid) == "patella"
+    vp = demo_window.viewport
+    ws.set_part_visible(pid, False)
+    vp.flush()
+    assert not vp.actors[pid].GetVisibility()
+    ws.set_part_visible(pid, True)
+    vp.flush()
+    assert vp.actors[pid].GetVisibility()
+
+
+def test_slider_reposes_live_points_in_place(demo_window, qtbot):
+    ws, vp = demo_window.ws, demo_window.viewport
+    meshes = {pid: s.mesh for pid, s in vp.surfaces.items()}
+    buffers = {pid: vp._points[pid] for pid in vp.surfaces}
+    renders = vp.renders
+    slider = demo_window.flexion_panel.slider
+    for value in (300, 600, 900):
+        slider.setValue(value)
+    qtbot.waitUntil(lambda: vp.renders > renders, timeout=5000)
+    assert vp.renders == renders + 1  # three slider events, one batched redraw
+    assert ws.flexion == 90.0
+    np.testing.assert_allclose(ws.coords, ws.poser.pose(90.0))
+    assert measure_flexion(ws.coords, ws.setup) == pytest.approx(90.0, abs=0.2)
+    for pid, surf in vp.surfaces.items():
+        assert surf.mesh is meshes[pid]
+        pts = vtk_to_numpy(surf.mesh.GetPoints().GetData())
+        assert np.shares_memory(pts, buffers[pid])
+        np.testing.assert_array_equal(pts, ws.coords[surf.model_index])
+    assert demo_window.flexion_panel.spin.value() == pytest.approx(90.0)
+    demo_window.flexion_panel.spin.setValue(45.0)
+    assert ws.flexion == 45.0 and slider.value() == 450
+
+
+def test_pick_a_condyle_set_by_box_and_click(demo_window, qtbot):
+    ws, vp = demo_window.ws, demo_window.viewport
+    original = ws.condyle_ids("lateral_condyle")
+    radius0 = ws.axes.lateral_fit.radius
+    femur = ws.setup_dict["roles"]["femur"]
+    for pid in vp.actors:
+        ws.set_part_visible(pid, pid in femur)
+    vp.flush()
+    vp.camera_preset("posterior")
+    panel = demo_window.landmark_panel
+    panel.target.setCurrentIndex(panel.target.findData("lateral_condyle"))
+    panel.pick_box.setChecked(True)
+    assert ws.pick_target == "lateral_condyle"
+    panel.clear_button.click()
+    assert ws.condyle_ids("lateral_condyle") == []
+    assert ws.setup_problem is not None  # too few nodes: reported, not raised
+    pts = [widget_point(vp, ws.coords[i]) for i in ws.model.node_index(original)]
+    xs, ys = [p.x() for p in pts], [p.y() for p in pts]
+    drag(vp.plotter, QPoint(min(xs) - 2, min(ys) - 2), QPoint(max(xs) + 2, max(ys) + 2))
+    picked = ws.condyle_ids("lateral_condyle")
+    femur_nodes = set(ws.model.node_ids[ws.model.part_node_indices(femur)].tolist())
+    assert set(picked) <= femur_nodes
+    assert len(set(picked) & set(original)) >= 0.8 * len(original)
+    assert ws.setup_problem is None, ws.setup_problem
+    assert ws.axes.lateral_fit.radius == pytest.approx(radius0, rel=0.25)
+    assert "R =" in panel.labels["lateral_fit"].text()
+    assert vp.plotter.actors.get("circles") is not None
+    # undo / redo every pick
+    panel.undo_button.click()
+    assert ws.condyle_ids("lateral_condyle") == []
+    panel.redo_button.click()
+    assert ws.condyle_ids("lateral_condyle") == picked
+    # Ctrl+click removes the node under the cursor; a plain click adds it back
+    node = ws.model.node_index(picked[len(picked) // 2])
+    where = widget_point(vp, ws.coords[node])
+    hit = vp.pick_at(where)
+    assert hit is not None and hit in picked
+    QTest.mouseClick(
+        vp.plotter, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.ControlModifier, where
+    )
+    assert hit not in ws.condyle_ids("lateral_condyle")
+    QTest.mouseClick(vp.plotter, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, where)
+    assert hit in ws.condyle_ids("lateral_condyle")
+    # an axis point by clicking
+    panel.target.setCurrentIndex(panel.target.findData("femur_axis:1"))
+    assert ws.pick_target == "femur_axis:1"
+    QTest.mouseClick(vp.plotter, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, where)
+    assert ws.setup_dict["landmarks"]["femur_axis"][1] == hit
+    panel.pick_box.setChecked(False)
+    assert ws.pick_target == ""
+    wait_idle(qtbot, ws)
+
+
+def test_heatmaps_threshold_worst_list_and_cutaway(demo_window, qtbot):
+    ws, vp, panel = demo_window.ws, demo_window.viewport, demo_window.quality_panel
+    set_slider(demo_window, qtbot, 90.0)
+    panel.mode.setCurrentIndex(panel.mode.findData("quality"))
+    assert ws.colour_mode == "quality"
+    for key, (label, _, _) in HEATMAP_METRICS.items():
+        panel.metric.setCurrentIndex(panel.metric.findData(key))
+        vp.flush()
+        values = ws.element_values(key)
+        assert vp._scalar_title == label
+        for pid, surf in vp.surfaces.items():
+            np.testing.assert_array_equal(surf.mesh.cell_data["value"], values[surf.cell_index])
+            has = bool(np.isfinite(values[surf.cell_index]).any())
+            assert bool(vp.actors[pid].mapper.GetScalarVisibility()) == has
+    # the Jacobian shown is the engine's
+    q = compute_quality(ws.coords, ws.model.blocks)
+    panel.metric.setCurrentIndex(panel.metric.findData("jacobian"))
+    jac = ws.element_values("jacobian")
+    np.testing.assert_array_equal(jac[np.isfinite(jac)], q.concatenated("jacobian_corner"))
+    # threshold highlight = exactly the elements below it
+    level = float(np.nanpercentile(jac, 5))
+    panel.threshold.setValue(level)
+    panel.threshold_on.setChecked(True)
+    vp.flush()
+    assert ws.threshold == pytest.approx(level, abs=1e-3)  # the spin box rounds to 3 decimals
+    expected = np.flatnonzero(jac < ws.threshold)
+    assert 0 < len(expected) < len(jac)
+    np.testing.assert_array_equal(np.sort(vp.highlighted_cells()), expected)
+    # worst list (worst first) and zoom
+    panel.refresh()
+    first = panel.worst.item(0)
+    cell = int(first.data(Qt.ItemDataRole.UserRole))
+    assert jac[cell] == np.nanmin(jac)
+    panel.worst.itemDoubleClicked.emit(first)
+    focal = np.asarray(vp.plotter.camera.focal_point)
+    block_cells = vp.grid.extract_cells([cell])
+    centre = ws.coords[np.asarray(block_cells.point_data["vtkOriginalPointIds"])].mean(axis=0)
+    np.testing.assert_allclose(focal, centre, atol=1e-6)
+    # cut-away: one clipping plane on every part mapper, none when off
+    panel.clip_on.setChecked(True)
+    vp.flush()
+    assert all(
+        a.GetMapper().GetClippingPlanes().GetNumberOfItems() == 1 for a in vp.actors.values()
+    )
+    panel.clip_on.setChecked(False)
+    vp.flush()
+    assert all(
+        a.GetMapper().GetClippingPlanes().GetNumberOfItems() == 0 for a in vp.actors.values()
+    )
+    panel.threshold_on.setChecked(False)
+    panel.mode.setCurrentIndex(panel.mode.findData("part"))
+    vp.flush()
+    assert not any(a.mapper.GetScalarVisibility() for a in vp.actors.values())
+
+
+def test_ligament_stretch_and_length_curve(demo_window, qtbot):
+    ws, vp = demo_window.ws, demo_window.viewport
+    assert ws.ligaments, "the demo has ligament parts"
+    names = {lig.name for lig in ws.ligaments}
+    titled = {
+        ligament_short_name(ws.model.parts[p].title) for p in ws.setup_dict["roles"]["ligament"]
+    }
+    assert "ACL" in names and names >= titled - {None}
+    set_slider(demo_window, qtbot, 90.0)
+    demo_window.ligament_panel.show_stretch.click()
+    assert ws.colour_mode == "stretch"
+    vp.flush()
+    stretch = ws.ligament_stretch_values()
+    lig_parts = {lig.part_id for lig in ws.ligaments}
+    for pid, surf in vp.surfaces.items():
+        vals = surf.mesh.cell_data["value"]
+        if pid in lig_parts:
+            assert np.isfinite(vals).all()
+            np.testing.assert_array_equal(vals, stretch[surf.cell_index])
+            assert vp.actors[pid].mapper.GetScalarVisibility()
+        else:
+            assert not vp.actors[pid].mapper.GetScalarVisibility()
+    assert not np.allclose(stretch[np.isfinite(stretch)], 1.0)  # the knee moved them
+    demo_window.ligament_panel.compute.click()
+    wait_idle(qtbot, ws)
+    angles, lengths = ws.ligament_curve
+    assert angles[0] == -5.0 and angles[-1] == 140.0
+    assert lengths.shape == (len(angles), len(ws.ligaments))
+    j = int(np.argmin(np.abs(angles - 90.0)))
+    expected = [lig.length(ws.poser.pose(float(angles[j]))) for lig in ws.ligaments]
+    np.testing.assert_allclose(lengths[j], expected)
+    assert len(demo_window.ligament_panel._ax.lines) >= len(ws.ligaments)
+
+
+def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
+    ws = demo_window.ws
+    set_slider(demo_window, qtbot, 90.0)
+    posed = ws.poser.pose(90.0)
+    out = tmp_path / "posed90.k"
+    n_inverted = ws.quality().n_inverted
+    if n_inverted:
+        with pytest.raises(ExportBlocked):
+            ws.export(out)
+        assert not out.exists()
+    assert ws.export(out, force=True)
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is None, demo_window.last_error
+    back = read_deck(out)
+    np.testing.assert_array_equal(back.node_ids, ws.model.node_ids)
+    np.testing.assert_allclose(back.coords, posed, rtol=0, atol=1e-6)
+    # smoothing in the worker: the result becomes the current pose
+    before = ws.quality()
+    demo_window.guard(ws.smooth)
+    assert ws.tasks.busy or ws.smoothed
+    wait_idle(qtbot, ws, timeout=150)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert ws.smoothed
+    after = ws.quality()
+    assert after.n_inverted <= before.n_inverted
+    assert after.worst_jacobian() >= before.worst_jacobian() - 1e-12
+    bone_nodes = np.concatenate([ws.setup.segment_nodes[s] for s in ("femur", "tibia")])
+    np.testing.assert_array_equal(ws.coords[bone_nodes], posed[bone_nodes])
+    out2 = tmp_path / "smoothed90.k"
+    ws.export(out2, force=True)
+    wait_idle(qtbot, ws)
+    np.testing.assert_allclose(read_deck(out2).coords, ws.coords, rtol=0, atol=1e-6)
+    # moving the slider leaves the smoothed state
+    set_slider(demo_window, qtbot, 60.0)
+    assert not ws.smoothed
+
+
+def test_inverted_elements_block_export_unless_forced(demo_window, qtbot, tmp_path):
+    ws = demo_window.ws
+    coords = ws.coords.copy()
+    block = next(b for e, b in ws.model.blocks.items() if e == "hex8")
+    row = block.conn[0]
+    coords[row[4:]] = coords[row[:4]] - (coords[row[4:]] - coords[row[:4]])  # flip one hex
+    ws.set_coords(coords, smoothed=False)
+    assert ws.quality().n_inverted >= 1
+    out = tmp_path / "inverted.k"
+    demo_window._export_target = str(out)
+    demo_window.guard(ws.export, out)
+    assert not out.exists()
+    box = demo_window.error_dialog
+    assert box is not None and "inverted" in box.text()
+    force = next(b for b in box.buttons() if b.text() == "Export anyway")
+    force.click()
+    wait_idle(qtbot, ws)
+    assert out.exists()
+    np.testing.assert_allclose(read_deck(out).coords, coords, atol=1e-6)
+
+
+def test_bad_deck_and_bad_setup_show_file_and_line(demo_window, qtbot, tmp_path):
+    ws = demo_window.ws
+    model, setup_dict = ws.model, dict(ws.setup_dict)
+    bad = tmp_path / "bad.k"
+    bad.write_text("*KEYWORD\n*NODE\n       1     abc     0.0     0.0\n*END\n")
+    demo_window.open_deck(bad)
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is not None
+    assert "bad.k" in demo_window.last_error and "line 3" in demo_window.last_error
+    assert ws.model is model
+    bad_setup = tmp_path / "bad.json"
+    bad_setup.write_text('{"format": "kneegui-setup",\n  "version": 1,,\n}\n')
+    demo_window.last_error = None
+    demo_window.guard(ws.open_setup, bad_setup)
+    assert "bad.json" in demo_window.last_error and "line 2" in demo_window.last_error
+    assert ws.setup_dict == setup_dict
+    wrong = tmp_path / "wrong.json"
+    wrong.write_text('{"format": "kneegui-setup", "version": 1, "side": "middle"}\n')
+    demo_window.guard(ws.open_setup, wrong)
+    assert "wrong.json" in demo_window.last_error
+    assert ws.setup_dict == setup_dict and ws.model is model
+
+
+def test_camera_presets_and_screenshot(demo_window, tmp_path):
+    vp = demo_window.viewport
+    frame = demo_window.ws.knee_frame()
+    expected = {
+        "lateral": frame["lateral"],
+        "medial": -frame["lateral"],
+        "anterior": frame["anterior"],
+        "posterior": -frame["anterior"],
+    }
+    for name in CAMERA_PRESETS:
+        vp.camera_preset(name)
+        cam = vp.plotter.camera
+        view = np.asarray(cam.position) - np.asarray(cam.focal_point)
+        np.testing.assert_allclose(view / np.linalg.norm(view), expected[name], atol=1e-9)
+    out = demo_window.save_screenshot(tmp_path / "window.png")
+    image = QImage(str(out))
+    assert image.width() == demo_window.width() and image.height() == demo_window.height()
+    centre = vp.plotter.mapTo(demo_window, vp.plotter.rect().center())
+    colours = {
+        image.pixel(centre.x() + dx, centre.y() + dy)
+        for dx in range(-60, 61, 20)
+        for dy in range(-60, 61, 20)
+    }
+    assert len(colours) > 3  # the 3-D view is in the picture, not a blank area
+
+
+def test_layout_and_recent_files_persist(demo_window, qtbot, leg_files, isolated_settings):
+    from app.main_window import MainWindow
+
+    assert str(leg_files[0]) in demo_window.recent_files()
+    demo_window.docks["Ligaments"].setFloating(False)
+    demo_window.docks["Model"].hide()
+    demo_window.save_layout()
+    assert str(isolated_settings) in demo_window.settings.fileName()
+    other = MainWindow()
+    qtbot.addWidget(other)
+    other.show()
+    assert str(leg_files[0]) in other.recent_files()
+    assert not other.docks["Model"].isVisible()
+    other.docks["Model"].show()
+    other.save_layout()
+    other.close()
+
+
+def test_cancel_a_background_task(demo_window, qtbot):
+    ws = demo_window.ws
+    assert ws.compute_ligament_curve(step=0.5)
+    ws.tasks.cancel()
+    wait_idle(qtbot, ws)
+    assert ws.ligament_curve is None
+    assert demo_window.last_error is None
+
+
+def test_command_line_screenshot(leg_files, tmp_path):
+    deck, setup = leg_files
+    out = tmp_path / "cli.png"
+    env = dict(
+        os.environ,
+        XDG_CONFIG_HOME=str(tmp_path / "config"),
+        KNEEGUI_CACHE_DIR=str(tmp_path / "cache"),
+        QT_API="pyside6",
+    )
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "app.main",
+            str(deck),
+            "--setup",
+            str(setup),
+            "--flexion",
+            "90",
+            "--colour",
+            "quality",
+            "--screenshot",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert QImage(str(out)).width() > 800
