@@ -269,3 +269,66 @@ def pose_skin(
             d[bad], _ = tree.query(x3[bad])
             bad = d < limit
     return x3, SkinPoseReport(float(np.degrees(theta)), capped, fixed)
+
+
+def count_contour_crossings(
+    contours: SkinContours,
+    coords: NDArray[np.float64],
+    tolerance: float = 0.0,
+    reference: NDArray[np.float64] | None = None,
+) -> int:
+    """Number of skin nodes lying beyond the plane of the neighbouring contour nearer the joint.
+
+    Each contour's plane is fitted to its nodes (centroid and least-squares normal, oriented away
+    from the joint along the limb). A node of contour ``k + 1`` on the joint side of contour
+    ``k``'s plane means the two contours cross. The first thigh and first calf contours are
+    checked against each other the same way.
+
+    Parameters
+    ----------
+    contours : SkinContours
+        From :func:`build_skin_contours` (initial pose).
+    coords : (N, 3) ndarray
+        Coordinates to check (any pose).
+    tolerance : float
+        Distance (model units) a node may lie beyond the plane before it counts.
+    reference : (N, 3) ndarray, optional
+        The initial coordinates: a node counts only if it was on the right side there (a slab
+        contour's fitted plane can have a node of a rough initial mesh slightly beyond it).
+    """
+    if reference is not None:
+        before = _beyond_plane(contours, reference, tolerance)
+        after = _beyond_plane(contours, coords, tolerance)
+        return int(np.count_nonzero(after & ~before))
+    return int(np.count_nonzero(_beyond_plane(contours, coords, tolerance)))
+
+
+def _beyond_plane(
+    contours: SkinContours, coords: NDArray[np.float64], tolerance: float
+) -> NDArray[np.bool_]:
+    """Per contour node: lies beyond the plane of the neighbouring contour nearer the joint."""
+    x = coords[contours.nodes]
+    n_c = contours.n_contours
+    centers = np.zeros((n_c, 3))
+    counts = np.bincount(contours.contour, minlength=n_c)
+    for j in range(3):
+        centers[:, j] = np.bincount(contours.contour, weights=x[:, j], minlength=n_c)
+    centers /= np.maximum(counts, 1)[:, None]
+    # order contours along each side from the joint outwards
+    order = {k: np.flatnonzero(contours.contour_side == k) for k in (0, 1)}
+    for k in (0, 1):
+        order[k] = order[k][np.argsort(contours.contour_rank[order[k]])]
+    normals = np.zeros((n_c, 3))
+    for c in range(n_c):
+        pts = x[contours.contour == c] - centers[c]
+        if len(pts) >= 3:
+            normals[c] = np.linalg.svd(pts, full_matrices=False)[2][-1]
+    beyond = np.zeros(len(x), dtype=bool)
+    pairs = [(a, b) for k in (0, 1) for a, b in zip(order[k][:-1], order[k][1:], strict=True)]
+    if len(order[0]) and len(order[1]):
+        pairs.append((order[0][0], order[1][0]))
+    for a, b in pairs:
+        n = normals[a] * np.sign(normals[a] @ (centers[b] - centers[a]) or 1.0)
+        sel = contours.contour == b
+        beyond[sel] |= (x[sel] - centers[a]) @ n < -tolerance
+    return beyond

@@ -1,0 +1,109 @@
+"""Geometric checks of a pose: tissue inside the skin and outside the bones.
+
+Inside-ness is decided by ray casting: a ray from the point crosses a closed surface an odd number
+of times if and only if the point is inside. The skin of a limb model is a tube open at its cut
+ends; a ray along the medial-lateral direction (perpendicular to the limb) still crosses it an odd
+number of times from inside.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.model import SHELL_TYPES, Model
+
+_FACES = {
+    "hex8": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
+    "wedge6": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
+    "pyramid5": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
+    "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
+    "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
+}
+
+
+def surface_triangles(model: Model, part_ids: Iterable[int], shells: bool = True) -> NDArray:
+    """(T, 3) node-index triangles of the outer surface of the given parts' solids (faces used
+    once), plus their shells when ``shells`` is true."""
+    wanted = np.array(sorted(set(int(p) for p in part_ids)), dtype=np.int64)
+    faces4, faces3 = [], []
+    for etype, block in model.blocks.items():
+        mask = np.isin(block.part_ids, wanted)
+        if not mask.any():
+            continue
+        conn = block.conn[mask]
+        if etype in SHELL_TYPES:
+            if shells:
+                (faces4 if etype == "quad4" else faces3).append(conn)
+            continue
+        for face in _FACES.get(etype, ()):
+            (faces4 if len(face) == 4 else faces3).append(conn[:, list(face)])
+    tris = []
+    for group, k in ((faces4, 4), (faces3, 3)):
+        if not group:
+            continue
+        f = np.concatenate(group)
+        key = np.sort(f, axis=1)
+        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        once = counts[inverse.reshape(-1)] == 1
+        f = f[once]
+        if k == 4:
+            tris += [f[:, [0, 1, 2]], f[:, [0, 2, 3]]]
+        else:
+            tris.append(f)
+    if not tris:
+        return np.zeros((0, 3), dtype=np.int64)
+    return np.concatenate(tris)
+
+
+def crossings_along_ray(
+    points: NDArray[np.float64],
+    triangles: NDArray[np.float64],
+    direction: NDArray[np.float64],
+    chunk: int = 256,
+) -> NDArray[np.int64]:
+    """How many triangles the ray ``point + t * direction`` (t > 0) crosses, per point.
+
+    Parameters
+    ----------
+    points : (P, 3) ndarray
+    triangles : (T, 3, 3) ndarray
+        Triangle vertex coordinates.
+    direction : (3,) ndarray
+        Ray direction (perturbed slightly inside so rays do not graze edges).
+    """
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d) + np.array([1.3e-4, -2.7e-4, 3.1e-4])
+    v0 = triangles[:, 0]
+    e1 = triangles[:, 1] - v0
+    e2 = triangles[:, 2] - v0
+    h = np.cross(d, e2)
+    a = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(a) > 1e-12
+    v0, e1, e2, h, a = v0[ok], e1[ok], e2[ok], h[ok], a[ok]
+    inv = 1.0 / a
+    out = np.zeros(len(points), dtype=np.int64)
+    for lo in range(0, len(points), chunk):
+        p = points[lo : lo + chunk]
+        s = p[:, None, :] - v0[None, :, :]
+        u = np.einsum("ptj,tj->pt", s, h) * inv
+        q = np.cross(s, e1[None, :, :])
+        v = (q @ d) * inv
+        t = np.einsum("ptj,tj->pt", q, e2) * inv
+        hit = (u >= 0) & (u <= 1) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+        out[lo : lo + chunk] = hit.sum(axis=1)
+    return out
+
+
+def inside_closed_surface(
+    points: NDArray[np.float64],
+    coords: NDArray[np.float64],
+    triangles: NDArray[np.int64],
+    direction: NDArray[np.float64],
+) -> NDArray[np.bool_]:
+    """Which points lie inside the surface made of ``triangles`` (node indices into ``coords``)."""
+    if len(triangles) == 0:
+        return np.zeros(len(points), dtype=bool)
+    return crossings_along_ray(points, coords[triangles], direction) % 2 == 1
