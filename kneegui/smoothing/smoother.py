@@ -60,6 +60,8 @@ CORNER_TRIPLES: dict[str, NDArray[np.int64]] = {
     "quad4": np.array([(0, 1, 3, -1), (1, 2, 0, -1), (2, 3, 1, -1), (3, 0, 2, -1)]),
 }
 SMOOTHED_TYPES: tuple[str, ...] = tuple(CORNER_TRIPLES)
+#: Corner nodes of each smoothed type (the connectivity columns the smoother reads).
+CORNER_NODES: dict[str, int] = {"hex8": 8, "wedge6": 6, "pyramid5": 5, "tet4": 4, "quad4": 4}
 
 
 @dataclass(frozen=True)
@@ -272,7 +274,7 @@ def _build_neighbourhood(
         block = blocks.get(etype)
         if block is None or len(block) == 0:
             continue
-        k = CORNER_TRIPLES[etype].shape[0]
+        k = CORNER_NODES[etype]
         conn = block.conn[:, :k]
         touching = is_movable[conn].any(axis=1)
         if not touching.any():
@@ -372,21 +374,28 @@ def _colour(
         pairs = np.zeros((0, 2), dtype=np.int64)
     ptr = np.searchsorted(pairs[:, 0], np.arange(n_movable + 1))
     nbrs = pairs[:, 1]
-    # priority: a fixed pseudo-random permutation (deterministic)
+    # Jones-Plassmann: rounds of locally highest-priority nodes (an independent set), each
+    # taking the smallest colour its coloured neighbours do not use (a bit mask of <= 62
+    # colours; a node has at most 26 neighbours in a hex mesh). Deterministic priorities.
     priority = np.random.default_rng(12345).permutation(n_movable).astype(float)
-    uncoloured = np.ones(n_movable, dtype=bool)
-    colours = []
+    colour = np.full(n_movable, -1, dtype=np.int64)
     deg = np.diff(ptr)
-    while uncoloured.any():
-        nbr_priority = np.where(uncoloured[nbrs], priority[nbrs], -1.0)
+    has = deg > 0
+    starts = np.minimum(ptr[:-1], max(len(nbrs) - 1, 0))
+    while np.any(colour < 0):
+        uncoloured = colour < 0
         best = np.full(n_movable, -1.0)
-        has = deg > 0
+        mask = np.zeros(n_movable, dtype=np.int64)
         if len(nbrs):
-            red = np.maximum.reduceat(nbr_priority, np.minimum(ptr[:-1], len(nbrs) - 1))
-            best[has] = red[has]
+            nbr_priority = np.where(uncoloured[nbrs], priority[nbrs], -1.0)
+            best[has] = np.maximum.reduceat(nbr_priority, starts)[has]
+            bits = np.where(colour[nbrs] >= 0, np.left_shift(1, np.maximum(colour[nbrs], 0)), 0)
+            mask[has] = np.bitwise_or.reduceat(bits, starts)[has]
         chosen = uncoloured & (priority > best)
-        colours.append(np.flatnonzero(chosen))
-        uncoloured &= ~chosen
+        lowest_free = ~mask & (mask + 1)  # lowest zero bit, as a power of two
+        colour[chosen] = np.log2(lowest_free[chosen]).astype(np.int64)
+    colours = [np.flatnonzero(colour == c) for c in range(int(colour.max()) + 1)]
+    colours = [c for c in colours if len(c)]
     return colours, ptr, nbrs
 
 
@@ -735,13 +744,17 @@ def _optimisation_stage(
     np.minimum.at(node_min, h_owner, ordered_quality(st.jac[handles], st.scaled[handles]))
     todo = np.flatnonzero((node_min < target) & dirty)
     todo = todo[np.lexsort((todo, node_min[todo]))][:max_nodes]
-    improved = 0
+    improved = tried = 0
     for count, ci in enumerate(todo):
         if count % 25 == 0:
             check_cancel()
             progress(count / len(todo), "optimising nodes")
+        h = nb.node_handles[nb.node_ptr[ci] : nb.node_ptr[ci + 1]]
+        if ordered_quality(st.jac[h], st.scaled[h]).min() >= target:
+            continue  # a neighbour's optimisation already lifted this one
+        tried += 1
         improved += _optimise_node(st, int(ci), max_evaluations)
-    return len(todo), improved
+    return tried, improved
 
 
 def _corner_determinants(

@@ -223,3 +223,109 @@ def test_nothing_to_move_returns_a_copy(block_model):
     new, report = smooth_mesh(model, None, free)
     assert new is not model.coords and np.array_equal(new, model.coords)
     assert report.moved_nodes == 0 and report.free_nodes == 0
+
+
+# ---------------------------------------------------------------------- other element types
+def _split_model(model, kind):
+    """The same block with every flesh hex split into 2 wedges or 6 tets (bone stays hex)."""
+    from kneegui.model import ElementBlock, Model
+
+    hexes = model.blocks["hex8"]
+    flesh = hexes.part_ids == 2
+    conn = hexes.conn[flesh]
+    if kind == "wedge6":
+        pieces = [conn[:, [0, 1, 2, 4, 5, 6]], conn[:, [0, 2, 3, 4, 6, 7]]]
+    else:
+        pieces = [conn[:, list(t)] for t in ((0, 1, 2, 6), (0, 2, 3, 6), (0, 3, 7, 6),
+                                             (0, 7, 4, 6), (0, 4, 5, 6), (0, 5, 1, 6))]  # fmt: skip
+    split = np.concatenate(pieces)
+    if kind == "tet4":  # orient every tet positively
+        p = model.coords[split]
+        vol = np.einsum(
+            "ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]
+        )
+        split[vol < 0] = split[vol < 0][:, [1, 0, 2, 3]]
+    n0 = len(hexes)
+    blocks = dict(model.blocks)
+    blocks["hex8"] = hexes.select(~flesh)
+    blocks[kind] = ElementBlock(
+        kind, np.arange(n0 + 1, n0 + len(split) + 1), np.full(len(split), 2), split
+    )
+    blocks["quad4"] = ElementBlock(
+        "quad4",
+        model.blocks["quad4"].ids + len(split),
+        model.blocks["quad4"].part_ids,
+        model.blocks["quad4"].conn,
+    )
+    return Model(model.node_ids, model.coords, blocks, model.parts)
+
+
+@pytest.mark.parametrize("kind", ["wedge6", "tet4"])
+def test_smoothing_repairs_wedge_and_tet_meshes(block_model, kind):
+    model = _split_model(block_model(7, 7, 7), kind)
+    q_model = compute_quality(model.coords, model.blocks)
+    assert q_model.n_inverted == 0 and q_model.worst_jacobian() > 0
+    posed = _jiggle(model, 11, amplitude=0.5)
+    q0 = compute_quality(posed.coords, posed.blocks)
+    assert q0[kind].inverted.any()
+    smoothed, _ = smooth_posed_model(posed, [2], [1], initial=model)
+    q1 = compute_quality(smoothed.coords, smoothed.blocks)
+    assert q1.n_inverted == 0 and q1.worst_jacobian() >= q0.worst_jacobian()
+    fixed = ~smoothing_free_nodes(posed, [2], [1])
+    assert np.array_equal(smoothed.coords[fixed], posed.coords[fixed])
+
+
+def test_colouring_separates_nodes_that_share_an_element(block_model):
+    from kneegui.smoothing.smoother import _build_neighbourhood, _colour
+
+    model = block_model(6, 6, 6)
+    movable = np.flatnonzero(smoothing_free_nodes(model, [2], [1]))
+    nb = _build_neighbourhood(model.blocks, movable, model.n_nodes)
+    compressed = np.full(model.n_nodes, -1)
+    compressed[movable] = np.arange(len(movable))
+    groups, _, _ = _colour(nb, compressed, len(movable))
+    assert sorted(np.concatenate(groups).tolist()) == list(range(len(movable)))
+    colour = np.empty(model.n_nodes, dtype=int)
+    colour[:] = -1
+    for k, g in enumerate(groups):
+        colour[movable[g]] = k
+    conn = model.blocks["hex8"].conn
+    for row in conn:
+        c = colour[row][colour[row] >= 0]
+        assert len(c) == len(set(c.tolist()))
+    assert len(groups) <= 27  # a structured hex mesh needs 8; the greedy rounds stay close
+
+
+REFERENCE_SHAPES = {
+    "hex8": [
+        (0, 0, 0),
+        (1, 0, 0),
+        (1, 1, 0),
+        (0, 1, 0),
+        (0, 0, 1),
+        (1, 0, 1),
+        (1, 1, 1),
+        (0, 1, 1),
+    ],
+    "wedge6": [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1)],
+    "pyramid5": [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0.5, 0.5, 0.7)],
+    "tet4": [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)],
+    "quad4": [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)],
+}
+
+
+@pytest.mark.parametrize("etype", list(REFERENCE_SHAPES))
+def test_smoother_measure_equals_reported_corner_jacobian(etype):
+    """The smoother's fast corner Jacobian is the one the quality report shows."""
+    from kneegui.model import ElementBlock
+    from kneegui.smoothing import corner_quality
+
+    shape = np.array(REFERENCE_SHAPES[etype], dtype=float)
+    n, k = 3000, len(shape)
+    pts = np.tile(shape, (n, 1)) + np.random.default_rng(9).uniform(-0.3, 0.3, (n * k, 3))
+    conn = np.arange(n * k).reshape(n, k)
+    reported = compute_quality(pts, {etype: ElementBlock(etype, np.arange(n), np.zeros(n), conn)})
+    jac, scaled = corner_quality(pts[conn], etype)
+    np.testing.assert_allclose(jac, reported[etype].jacobian_corner, atol=1e-12)
+    assert np.all((scaled > 0) == (jac > 0))
+    assert np.any(jac <= 0) or etype == "tet4"
