@@ -380,6 +380,15 @@ def load_setup(source: str | Path | Mapping[str, Any], model: Model) -> JointSet
             key = f"roles.{segment}"
             raise chk.error(f"the parts {list(roles[segment])} have no elements", key)
     _warn_shared_bone_nodes(chk, segment_nodes)
+    if roles["fixed"]:
+        fixed_nodes = model.part_node_indices(roles["fixed"])
+        moving_nodes = np.union1d(segment_nodes[moving], segment_nodes["patella"])
+        shared = np.intersect1d(fixed_nodes, moving_nodes)
+        if len(shared):
+            chk.warnings.append(
+                f"{len(shared)} node(s) of 'fixed' parts belong to the moving {moving} or the "
+                "patella: they will move and stretch the fixed elements"
+            )
 
     landmarks = data["landmarks"]
     if not isinstance(landmarks, dict):

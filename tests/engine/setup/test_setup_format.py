@@ -270,3 +270,32 @@ def test_setups_compare_by_identity_and_hash(knee):
     b = load_setup(knee.setup, knee.model)
     assert a == a and a != b  # no element-wise array comparison error
     assert len({a, b}) == 2
+
+
+def test_fixed_parts_sharing_moving_bone_nodes_warn(knee):
+    from kneegui.model import ElementBlock, Model, Part
+
+    m = knee.model
+    tibia_node = int(m.part_node_indices([201])[0])
+    femur_node = int(m.part_node_indices([101])[0])
+    beams = ElementBlock(
+        "beam2",
+        [99001, 99002],
+        [901, 902],
+        [[tibia_node, tibia_node + 1], [femur_node, femur_node + 1]],
+    )
+    model = Model(
+        m.node_ids,
+        m.coords,
+        {**m.blocks, "beam2": beams},
+        {**m.parts, 901: Part(901, "Foot"), 902: Part(902, "Pelvis")},
+    )
+    data = copy.deepcopy(knee.setup)
+    data["roles"]["fixed"] = [902]  # shares a femur node: the femur does not move
+    assert not any("'fixed'" in w for w in load_setup(data, model).warnings)
+    data["roles"]["fixed"] = [901, 902]  # the foot shares a node with the moving tibia
+    setup = load_setup(data, model)
+    assert any("node(s) of 'fixed' parts belong to the moving tibia" in w for w in setup.warnings)
+    data["moving_segment"] = "femur"
+    setup = load_setup(data, model)
+    assert any("belong to the moving femur" in w for w in setup.warnings)
