@@ -7,8 +7,9 @@ The directions come from the bone itself, never from the model's global axes:
 2. *superior*: refined through the centroids of two shaft slabs;
 3. *medial-lateral*: the direction of largest spread of the distal-end surface nodes across the
    shaft (epicondylar width > antero-posterior depth);
-4. *anterior*: towards the patella when given, else opposite the posterior bulge of the condyles
-   relative to the shaft line (the condyles sit behind the shaft, the trochlea in line with it);
+4. *anterior*: towards the patella when given, else away from the intercondylar notch (just
+   above the distal end the middle of the bone is recessed far more behind than in front), else
+   opposite the condyles' bulge behind the shaft line;
 5. *medial*: the subject's left (= superior x anterior) for a right knee, its right for a left
    knee.
 
@@ -79,6 +80,38 @@ def _slab(t: NDArray[np.float64], lo: float, hi: float) -> NDArray[np.bool_]:
 
 def _perpendicular(v: NDArray[np.float64], axis: NDArray[np.float64]) -> NDArray[np.float64]:
     return v - np.outer(v @ axis, axis) if v.ndim == 2 else v - (v @ axis) * axis
+
+
+def _notch_sign(
+    pts: NDArray[np.float64],
+    height: NDArray[np.float64],
+    ml_dir: NDArray[np.float64],
+    ap_dir: NDArray[np.float64],
+    width: float,
+) -> float:
+    """+1 if ``ap_dir`` points anterior, -1 if posterior, 0 if undecided.
+
+    Below the notch roof (5-18 % of the width above the distal end) the intercondylar notch opens
+    posteriorly (deep, about
+    a quarter of the width), while the trochlear groove in front is shallow: the middle strip of
+    the bone is recessed from the condyles much more on the posterior side.
+    """
+    slab = (height > 0.05 * width) & (height < 0.18 * width)
+    if slab.sum() < 10:
+        return 0.0
+    p = pts[slab]
+    ml = p @ ml_dir
+    a = p @ ap_dir
+    mid = 0.5 * (ml.min() + ml.max())
+    centre = np.abs(ml - mid) < 0.05 * width
+    sides = np.abs(ml - mid) > 0.15 * width
+    if centre.sum() < 2 or sides.sum() < 2:
+        return 0.0
+    recess_minus = a[centre].min() - a[sides].min()  # recess on the -ap side
+    recess_plus = a[sides].max() - a[centre].max()  # recess on the +ap side
+    if abs(recess_minus - recess_plus) < 0.05 * width:
+        return 0.0
+    return 1.0 if recess_minus > recess_plus else -1.0
 
 
 def femur_frame(
@@ -162,9 +195,12 @@ def femur_frame(
     if patella_c is not None:
         anterior = ap if (patella_c - c_lo) @ ap > 0 else -ap
     else:
-        distal_region = spts[sh < h_min + 0.6 * width]
-        a = (distal_region - c_lo) @ ap
-        anterior = ap if -a.min() > a.max() else -ap
+        sign = _notch_sign(pts, pts @ superior - h_min - (c_lo @ superior), ml, ap, width)
+        if sign == 0.0:  # no notch to be seen: the condyles bulge behind the shaft line
+            distal_region = spts[sh < h_min + 0.6 * width]
+            a = (distal_region - c_lo) @ ap
+            sign = 1.0 if -a.min() > a.max() else -1.0
+        anterior = sign * ap
     left = np.cross(superior, anterior)
     medial = left if side == "right" else -left
     return {

@@ -80,3 +80,21 @@ def test_demo_suggestions_reproduce_its_setup(leg, setup_and_axes):
     assert suggested.lateral_fit.radius == pytest.approx(20.5, abs=0.3)
     assert suggested.medial_fit.radius == pytest.approx(23.3, abs=0.3)
     assert suggested.initial_flexion_deg == pytest.approx(axes.initial_flexion_deg, abs=2.0)
+
+
+def test_demo_condyles_found_without_hints_in_any_orientation(leg, setup_and_axes):
+    """No tibia or patella given: the notch tells posterior from anterior."""
+    from kneegui.setup.synthetic import random_rotation
+
+    _, axes = setup_and_axes
+    side = leg.setup["side"]
+    rot = random_rotation(7)
+    moved = leg.model.with_coords(leg.model.coords @ rot.T + [100.0, 200.0, -50.0])
+    lateral, medial = suggest_condyle_nodes(moved, leg.setup["roles"]["femur"], side)
+    # the same nodes as in the original pose, on the designed circles
+    rel_lat = leg.model.coords[leg.model.node_index(lateral)] - axes.lateral_center
+    rel_med = leg.model.coords[leg.model.node_index(medial)] - axes.medial_center
+    for rel, radius in ((rel_lat, 20.5), (rel_med, 23.3)):
+        in_plane = np.hypot(rel @ axes.anterior, rel @ axes.superior)
+        assert len(rel) >= 5
+        np.testing.assert_allclose(in_plane, radius, atol=0.05)
