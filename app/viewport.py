@@ -41,6 +41,8 @@ class Viewport(QWidget):
         layout.setContentsMargins(0, 0, 0, 0)
         self.plotter = QtInteractor(self, auto_update=False)
         self.plotter.set_background("#20242b", top="#4a5361")
+        # software GL (Mesa llvmpipe under Xvfb) renders 2-3x faster without multisampling
+        self.plotter.ren_win.SetMultiSamples(0)
         layout.addWidget(self.plotter)
         self.plotter.add_axes()
         self.surfaces: dict[int, PartSurface] = {}
@@ -129,6 +131,7 @@ class Viewport(QWidget):
                 render_lines_as_tubes=False,
                 name=f"part-{pid}",
                 reset_camera=False,
+                render=False,
                 nan_color="#b0b0b0",
             )
             actor.mapper.SetScalarVisibility(False)
