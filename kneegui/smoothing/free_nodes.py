@@ -19,11 +19,13 @@ def degraded_elements(
     result: QualityResult,
     initial: QualityResult | None = None,
     threshold: float = 0.6,
+    tolerance: float = 0.02,
 ) -> dict[str, NDArray[np.bool_]]:
     """Elements the smoother should work on.
 
     An element is degraded when it is inverted (corner Jacobian <= 0), or when its corner
-    Jacobian is below ``threshold`` *and* (given ``initial``) below its initial value.
+    Jacobian is below ``threshold`` *and* (given ``initial``) more than ``tolerance`` below its
+    initial value.
 
     Parameters
     ----------
@@ -33,6 +35,8 @@ def degraded_elements(
         Full quality of the initial model (same blocks).
     threshold : float
         Corner-Jacobian level below which an element counts as degraded (the warn level).
+    tolerance : float
+        Loss of corner Jacobian against the initial model that is ignored.
 
     Returns
     -------
@@ -43,7 +47,7 @@ def degraded_elements(
     for etype, q in result.by_type.items():
         bad = q.jacobian_corner < threshold
         if initial is not None and etype in initial:
-            bad &= q.jacobian_corner < initial[etype].jacobian_corner - 1e-12
+            bad &= q.jacobian_corner < initial[etype].jacobian_corner - tolerance
         out[etype] = bad | q.inverted
     return out
 
@@ -99,6 +103,7 @@ def smoothing_free_nodes(
     fixed_part_ids: Iterable[int] = (),
     degraded_element_mask: Mapping[str, NDArray[np.bool_]] | None = None,
     rings: int = 2,
+    soft_interfaces: bool = False,
 ) -> NDArray[np.bool_]:
     """Interior soft-tissue nodes near degraded elements: the nodes the smoother may move.
 
@@ -115,16 +120,29 @@ def smoothing_free_nodes(
         soft-tissue element counts, so every interior soft-tissue node is free.
     rings : int
         Layers of neighbouring soft-tissue elements added around the degraded ones.
+    soft_interfaces : bool
+        Also free the nodes shared only by soft-tissue solids of several parts (e.g. the
+        interface between thigh and knee flesh). Default False: every part-boundary node stays.
 
     Returns
     -------
     (N,) ndarray of bool
         Free nodes: used only by soft-tissue solids of a single part (hex8, wedge6, pyramid5,
-        tet4), not on the boundary surface of the solid mesh, not in a fixed part, and within
-        ``rings`` elements of a degraded element.
+        tet4) (or of several, with ``soft_interfaces``), not on the boundary surface of the
+        solid mesh, not in a fixed part, and within ``rings`` elements of a degraded element.
     """
-    free, _ = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
-    free &= node_part_count(model.blocks, model.n_nodes) == 1
+    free, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
+    if soft_interfaces:
+        # nodes touched by anything other than soft-tissue solids stay
+        other = np.zeros(model.n_nodes, dtype=bool)
+        for etype, block in model.blocks.items():
+            if len(block) == 0:
+                continue
+            outside = ~np.isin(block.part_ids, soft) | (etype not in MOVABLE_SOLID_TYPES)
+            other[block.conn[outside].reshape(-1)] = True
+        free &= ~other
+    else:
+        free &= node_part_count(model.blocks, model.n_nodes) == 1
     free &= ~boundary_node_mask(model.n_nodes, model.blocks)
     fixed = list(fixed_part_ids)
     if fixed:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
+from numpy.typing import NDArray
+
 from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult, compute_quality
 from kneegui.smoothing.free_nodes import (
@@ -26,9 +29,11 @@ def smooth_posed_model(
     initial: Model | QualityResult | None = None,
     *,
     threshold: float = 0.6,
+    tolerance: float = 0.02,
     rings: int = 2,
     slide_skin: bool = False,
     skin_part_ids: Iterable[int] = (),
+    soft_interfaces: bool = False,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
     **options,
@@ -46,13 +51,20 @@ def smooth_posed_model(
     initial : Model or QualityResult, optional
         The initial model (or its quality): an element counts as degraded only if it got worse.
     threshold : float
-        Corner-Jacobian level below which an element counts as degraded.
+        Corner-Jacobian level below which an element counts as degraded. The smoother's goal
+        for each element is this level, or the element's initial Jacobian if that was lower
+        (an element that starts invalid aims at being valid).
+    tolerance : float
+        Loss of corner Jacobian against the initial model that is ignored (both for finding
+        the degraded elements and for the goals).
     rings : int
         Element layers around the degraded elements whose nodes may move.
     slide_skin : bool
         Also let surface nodes of the soft tissue / skin slide tangentially.
     skin_part_ids : iterable of int
         Skin parts (shells sharing the flesh's surface nodes), used with ``slide_skin``.
+    soft_interfaces : bool
+        Also move nodes shared only by soft-tissue solids of different parts.
     progress, cancel : callable, optional
         See :func:`kneegui.smoothing.smooth_mesh`.
     **options
@@ -70,17 +82,24 @@ def smooth_posed_model(
     initial_quality = (
         compute_quality(initial.coords, initial.blocks) if isinstance(initial, Model) else initial
     )
-    degraded = degraded_elements(quality, initial_quality, threshold)
-    free = smoothing_free_nodes(posed, soft, fixed, degraded, rings)
+    degraded = degraded_elements(quality, initial_quality, threshold, tolerance)
+    free = smoothing_free_nodes(posed, soft, fixed, degraded, rings, soft_interfaces)
     sliding = None
     if slide_skin:
         sliding = smoothing_sliding_nodes(posed, soft, skin_part_ids, fixed, degraded, rings)
+    # each element's goal: the threshold, or its initial quality if that was lower
+    goals: dict[str, NDArray[np.float64]] | float = threshold
+    if initial_quality is not None:
+        goals = {
+            etype: np.minimum(threshold, np.maximum(q.jacobian_corner - tolerance, 0.0))
+            for etype, q in initial_quality.by_type.items()
+        }
     coords, report = smooth_mesh(
         posed.coords,
         posed.blocks,
         free,
         sliding_nodes=sliding,
-        target=threshold,
+        target=goals,
         progress=progress,
         cancel=cancel,
         **options,

@@ -259,6 +259,7 @@ class _Neighbourhood:
     node_handles: NDArray[np.int64]
     nbr_ptr: NDArray[np.int64]  # CSR over movable nodes -> edge-neighbour node indices
     nbr: NDArray[np.int64]
+    block_rows: list[NDArray[np.int64]]  # per type, rows of the touching elements in the block
 
 
 def _build_neighbourhood(
@@ -268,7 +269,7 @@ def _build_neighbourhood(
     is_movable[movable] = True
     compressed = np.full(n_nodes, -1, dtype=np.int64)
     compressed[movable] = np.arange(len(movable))
-    types, conns, offsets = [], [], [0]
+    types, conns, offsets, block_rows = [], [], [0], []
     pair_node, pair_handle, edge_a, edge_b = [], [], [], []
     for etype in SMOOTHED_TYPES:
         block = blocks.get(etype)
@@ -280,6 +281,7 @@ def _build_neighbourhood(
         if not touching.any():
             continue
         conn = np.ascontiguousarray(conn[touching])
+        block_rows.append(np.flatnonzero(touching))
         base = offsets[-1]
         handles = base + np.arange(len(conn))
         hit = is_movable[conn]
@@ -319,6 +321,7 @@ def _build_neighbourhood(
         node_handles=ph[order],
         nbr_ptr=nbr_ptr,
         nbr=pairs[:, 1],
+        block_rows=block_rows,
     )
 
 
@@ -409,9 +412,9 @@ def smooth_mesh(
     max_sweeps: int = 40,
     relaxation: tuple[float, ...] = (1.0, 0.5, 0.25),
     optimize: bool = True,
-    target: float = 0.6,
-    max_optimized_nodes: int = 1500,
-    max_evaluations: int = 60,
+    target: float | Mapping[str, ArrayLike] = 0.6,
+    max_optimized_nodes: int = 1000,
+    max_evaluations: int = 40,
     passes: int = 3,
     sliding_feature_angle: float = 30.0,
     aspect_limit: float = 5.0,
@@ -439,9 +442,12 @@ def smooth_mesh(
         Fractions of the Laplacian step tried in turn for each node.
     optimize : bool
         Run stage 2 (Nelder-Mead per node).
-    target : float
-        Both stages work on the nodes whose worst neighbouring corner Jacobian is below this
-        (stage 1 also on the nodes sharing an element with them).
+    target : float or mapping of str to (m,) array_like
+        Quality goal: both stages work on the nodes sharing an element whose corner Jacobian is
+        below its goal (stage 1 also on their neighbours). A float applies to every element; a
+        mapping gives one goal per element of a block (aligned with its rows; types not in the
+        mapping use 0.6), e.g. ``min(0.6, initial Jacobian)`` so that elements are brought back
+        to their initial quality rather than above it.
     max_optimized_nodes : int
         Stage 2 runs at most this many node optimisations in all (the worst neighbourhoods
         first); each costs a few milliseconds.
@@ -559,9 +565,17 @@ def smooth_mesh(
             axis=1,
         )
         scale = float(np.median(edge_len)) if len(edge_len) else 1.0
+    goal = np.full(len(jac), 0.6)
+    for ti, etype in enumerate(nb.types):
+        span = slice(nb.offset[ti], nb.offset[ti + 1])
+        if isinstance(target, Mapping):
+            if etype in target:
+                goal[span] = np.asarray(target[etype], dtype=float)[nb.block_rows[ti]]
+        else:
+            goal[span] = float(target)
     state = _State(
         nb, coords, jac, scaled, aspect, movable, projector, basis, worst_before, scale,
-        float(aspect_limit),
+        float(aspect_limit), goal,
     )  # fmt: skip
     moves = sweeps = optimized = improved = 0
     n_passes = max(int(passes), 1) if n_mov else 0
@@ -577,14 +591,14 @@ def smooth_mesh(
             report_progress((p + 0.5 + 0.5 * fraction) / n_passes, message)
 
         m, s_ = _laplacian_stage(
-            state, colours, (conflict_ptr, conflict_nbrs), target, max_sweeps, relaxation,
+            state, colours, (conflict_ptr, conflict_nbrs), max_sweeps, relaxation,
             sweep_progress, check_cancel,
         )  # fmt: skip
         moves += m
         sweeps += s_
         if optimize and optimized < max_optimized_nodes:
             o, i_ = _optimisation_stage(
-                state, target, max_optimized_nodes - optimized, max_evaluations, node_progress,
+                state, max_optimized_nodes - optimized, max_evaluations, node_progress,
                 check_cancel,
                 dirty,
             )  # fmt: skip
@@ -596,7 +610,7 @@ def smooth_mesh(
         if moved.any() and len(conflict_nbrs):
             owner = np.repeat(np.arange(n_mov), np.diff(conflict_ptr))
             dirty[owner[moved[conflict_nbrs]]] = True
-        if after[0] == 0 and after[1] >= target:
+        if after[0] == 0 and np.all(state.deficit(all_handles) >= 0):
             break
         if after[0] >= before[0] and after[1] <= before[1] + 1e-9 and after[2] <= before[2] + 1e-6:
             break
@@ -635,13 +649,17 @@ class _State:
     floor: float
     scale: float
     aspect_limit: float
+    goal: NDArray[np.float64]  # per element (handle): the quality it should reach
+
+    def deficit(self, handles: NDArray[np.int64]) -> NDArray[np.float64]:
+        """J* minus the goal of the given elements (negative: below the goal)."""
+        return ordered_quality(self.jac[handles], self.scaled[handles]) - self.goal[handles]
 
 
 def _laplacian_stage(
     st: _State,
     colours: list[NDArray[np.int64]],
     conflicts: tuple[NDArray[np.int64], NDArray[np.int64]],
-    target: float,
     max_sweeps: int,
     relaxation: tuple[float, ...],
     progress: ProgressCallback,
@@ -649,8 +667,8 @@ def _laplacian_stage(
 ) -> tuple[int, int]:
     """Stage 1: guarded Laplacian sweeps. Returns (accepted moves, sweeps run).
 
-    Each sweep works on the nodes whose neighbourhood is below ``target`` and the nodes
-    sharing an element with them.
+    Each sweep works on the nodes sharing an element below its goal and the nodes sharing an
+    element with them.
     """
     nb, coords, jac, scaled, aspect = st.nb, st.coords, st.jac, st.scaled, st.aspect
     n_mov = len(st.movable)
@@ -667,9 +685,9 @@ def _laplacian_stage(
         sweeps += 1
         moved_this_sweep = 0
         largest_move = 0.0
-        node_min = np.full(n_mov, np.inf)
-        np.minimum.at(node_min, all_owner, ordered_quality(jac[all_handles], scaled[all_handles]))
-        poor = node_min < target
+        node_deficit = np.full(n_mov, np.inf)
+        np.minimum.at(node_deficit, all_owner, st.deficit(all_handles))
+        poor = node_deficit < 0
         working = poor.copy()
         working[conflict_owner[poor[conflict_nbrs]]] = True
         if not working.any():
@@ -725,7 +743,6 @@ def _laplacian_stage(
 
 def _optimisation_stage(
     st: _State,
-    target: float,
     max_nodes: int,
     max_evaluations: int,
     progress: ProgressCallback,
@@ -742,7 +759,9 @@ def _optimisation_stage(
     handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
     node_min = np.full(n_mov, np.inf)
     np.minimum.at(node_min, h_owner, ordered_quality(st.jac[handles], st.scaled[handles]))
-    todo = np.flatnonzero((node_min < target) & dirty)
+    node_deficit = np.full(n_mov, np.inf)
+    np.minimum.at(node_deficit, h_owner, st.deficit(handles))
+    todo = np.flatnonzero((node_deficit < 0) & dirty)
     todo = todo[np.lexsort((todo, node_min[todo]))][:max_nodes]
     improved = tried = 0
     for count, ci in enumerate(todo):
@@ -750,7 +769,7 @@ def _optimisation_stage(
             check_cancel()
             progress(count / len(todo), "optimising nodes")
         h = nb.node_handles[nb.node_ptr[ci] : nb.node_ptr[ci + 1]]
-        if ordered_quality(st.jac[h], st.scaled[h]).min() >= target:
+        if st.deficit(h).min() >= 0:
             continue  # a neighbour's optimisation already lifted this one
         tried += 1
         improved += _optimise_node(st, int(ci), max_evaluations)
@@ -883,8 +902,8 @@ def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
         options={
             "initial_simplex": simplex,
             "maxfev": max_evaluations,
-            "xatol": 1e-3 * local_scale,
-            "fatol": 1e-7,
+            "xatol": 1e-2 * local_scale,
+            "fatol": 1e-4,
         },
     )
     x = x0 + b @ res.x
