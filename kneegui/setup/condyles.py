@@ -64,10 +64,24 @@ def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.in
                 if f.shape[1] == 3:
                     f = np.column_stack([f, np.full(len(f), -1)])
                 faces.append(f)
-    if faces:
+    if faces and model.n_nodes >= 2**31 - 1:  # too many nodes to pack two per int64
         allf = np.sort(np.concatenate(faces), axis=1)
         uniq, counts = np.unique(allf, axis=0, return_counts=True)
         boundary = uniq[counts == 1].reshape(-1)
+        nodes.append(boundary[boundary >= 0])
+    elif faces:
+        # faces as sorted node rows (+1 so the triangle pad is 0), packed into two int64 keys;
+        # a face used by exactly one element has no equal neighbour after a lexicographic sort
+        allf = np.sort(np.concatenate(faces), axis=1) + 1
+        key1 = (allf[:, 0] << 32) | allf[:, 1]
+        key2 = (allf[:, 2] << 32) | allf[:, 3]
+        order = np.lexsort((key2, key1))
+        k1, k2 = key1[order], key2[order]
+        same = (k1[1:] == k1[:-1]) & (k2[1:] == k2[:-1])
+        shared = np.zeros(len(order), dtype=bool)
+        shared[1:] |= same
+        shared[:-1] |= same
+        boundary = allf[order[~shared]].reshape(-1) - 1
         nodes.append(boundary[boundary >= 0])
     if not nodes:
         return np.zeros(0, dtype=np.int64)
@@ -128,7 +142,8 @@ def femur_frame(
     dict
         ``superior``, ``anterior``, ``medial`` (unit (3,) vectors), ``distal_point`` (3,) (the
         most distal node), ``width`` (mm, medial-lateral extent of the distal end) and
-        ``shaft_point`` (3,) (a point on the shaft axis).
+        ``shaft_point`` (3,) (a point on the shaft axis) and ``surface_nodes`` (node indices of
+        the femur's surface, or all its nodes if it has no surface).
 
     Raises
     ------
@@ -183,7 +198,9 @@ def femur_frame(
     distal_point = pts[int(np.argmin(h))]
 
     surf = surface_node_indices(model, femur_ids)
-    spts = model.coords[surf] if len(surf) >= 20 else pts
+    if len(surf) < 20:
+        surf = nodes
+    spts = model.coords[surf]
     sh = (spts - c_lo) @ superior
     bottom = spts[sh < h_min + 0.15 * length]
     q = _perpendicular(bottom - c_lo, superior)
@@ -210,6 +227,7 @@ def femur_frame(
         "distal_point": distal_point,
         "width": width,
         "shaft_point": c_lo,
+        "surface_nodes": surf,
     }
 
 
@@ -374,9 +392,7 @@ def suggest_condyle_nodes(
     frame = femur_frame(model, femur_ids, side, tibia_part_ids, patella_part_ids)
     sup, ant, med = frame["superior"], frame["anterior"], frame["medial"]
     width = float(frame["width"])
-    surf = surface_node_indices(model, femur_ids)
-    if len(surf) < 10:
-        surf = model.part_node_indices(femur_ids)
+    surf = np.asarray(frame["surface_nodes"])
     pts = model.coords[surf]
     origin = np.asarray(frame["distal_point"])
     r0 = 0.22 * width

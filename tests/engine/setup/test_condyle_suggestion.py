@@ -95,3 +95,49 @@ def test_femur_without_shape_raises():
     )
     with pytest.raises(GeometryError, match="not elongated"):
         suggest_condyle_nodes(model, [1], "right")
+
+
+def _reference_surface(model, part_ids):
+    """Straightforward surface: faces counted with np.unique(axis=0)."""
+    from kneegui.model import SHELL_TYPES
+    from kneegui.setup.condyles import _SOLID_FACES
+
+    faces, nodes = [], []
+    for etype, block in model.blocks.items():
+        conn = block.conn[np.isin(block.part_ids, list(part_ids))]
+        if etype in SHELL_TYPES:
+            nodes.append(conn.reshape(-1))
+        elif etype in _SOLID_FACES:
+            for face in _SOLID_FACES[etype]:
+                f = conn[:, list(face)]
+                faces.append(np.column_stack([f, np.full((len(f), 4 - f.shape[1]), -1)]))
+    uniq, counts = np.unique(np.sort(np.concatenate(faces), axis=1), axis=0, return_counts=True)
+    b = uniq[counts == 1].reshape(-1)
+    return np.unique(np.concatenate([*nodes, b[b >= 0]]))
+
+
+def test_surface_matches_reference_on_mixed_elements():
+    """Hexes split into tets, wedges and pyramids, plus shells: same surface as np.unique."""
+    pts, conn = _hex_box([0, 0, 0], [4, 3, 2], (4, 3, 2))
+    n = len(conn)
+    hexes, tets, wedges = conn[: n // 3], conn[n // 3 : 2 * n // 3], conn[2 * n // 3 :]
+    # each hex -> 6 tets (around the 0-6 diagonal), or 2 wedges
+    tet_rows = [(0, 1, 2, 6), (0, 2, 3, 6), (0, 3, 7, 6), (0, 7, 4, 6), (0, 4, 5, 6), (0, 5, 1, 6)]
+    tet_conn = np.concatenate([tets[:, list(t)] for t in tet_rows])
+    wedge_conn = np.concatenate([wedges[:, [0, 1, 2, 4, 5, 6]], wedges[:, [0, 2, 3, 4, 6, 7]]])
+    shell = hexes[:, [4, 5, 6, 7]][:2]
+    blocks = {
+        "hex8": ElementBlock("hex8", np.arange(len(hexes)) + 1, np.full(len(hexes), 1), hexes),
+        "tet4": ElementBlock(
+            "tet4", np.arange(len(tet_conn)) + 100, np.full(len(tet_conn), 1), tet_conn
+        ),
+        "wedge6": ElementBlock(
+            "wedge6", np.arange(len(wedge_conn)) + 500, np.full(len(wedge_conn), 2), wedge_conn
+        ),
+        "quad4": ElementBlock("quad4", [900, 901], [3, 3], shell),
+    }
+    model = Model(np.arange(len(pts)) + 1, pts, blocks)
+    for parts in ([1], [2], [1, 2], [1, 2, 3], [3]):
+        np.testing.assert_array_equal(
+            surface_node_indices(model, parts), _reference_surface(model, parts)
+        )
