@@ -1,18 +1,17 @@
 """Connectivity-preserving mesh smoothing, after the DARSS scheme of Jani et al. (2012).
 
-Stage 1 moves every free node towards the mean of its edge neighbours (a Laplacian step, tried
-with relaxation 1, 1/2, 1/4) and keeps a move only if the worst corner Jacobian of the elements
-sharing the node does not drop and their summed quality rises. Nodes that share no element are
-moved together (a colouring of the free nodes), so each step is one vectorised evaluation.
+Stage 1 moves free nodes towards the mean of their edge neighbours (a Laplacian step, tried
+with relaxation 1, 1/2, 1/4); nodes that share no element move together (a colouring of the free
+nodes), so each step is one vectorised evaluation. Stage 2 runs Nelder-Mead
+(``scipy.optimize.minimize``) on each node still next to an element below its goal, worst
+first, maximising the summed normalised Jacobians of the elements sharing it with extra weight
+on the worst one. Both stages keep a move only if, over the elements sharing the node: the
+worst ordered quality J* (:func:`ordered_quality`) does not drop, the summed J* rises, no more
+elements are invalid, no corner Jacobian falls below the region's worst before smoothing, and the
+largest edge ratio stays below ``max(old, aspect_limit)``.
 
-Stage 2 runs Nelder-Mead (``scipy.optimize.minimize``) on each node whose neighbourhood is still
-below the target, worst first, maximising the summed normalised Jacobians of the elements sharing
-it (plus a term that pulls negative corners back), and again keeps the result only if the worst
-Jacobian around the node does not drop.
-
-Because every accepted move leaves the worst corner Jacobian of the elements it touches at least
-as good as before, the model's worst corner Jacobian never decreases. Fixed nodes never move,
-element count and connectivity never change, and the result is deterministic.
+Hence the model's worst corner Jacobian never decreases; fixed nodes never move; element count
+and connectivity never change; and the result is deterministic.
 """
 
 from __future__ import annotations
