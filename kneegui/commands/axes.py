@@ -1,4 +1,8 @@
-"""``kneegui axes MODEL --setup S.json``: condyle circle fits, joint axes and initial flexion."""
+"""``kneegui axes MODEL --setup S.json``: condyle circle fits, joint axes and initial flexion.
+
+``kneegui axes MODEL --suggest OUT.json --side left`` first writes a setup suggested from the part
+titles and the bone geometry (roles, condyle node sets, axis points), then reports on it.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +16,22 @@ HELP = "Fit the condyle circles and print the radii, F-E and L-R axes and the in
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", help="LS-DYNA keyword deck (.k/.key/.dyn)")
-    parser.add_argument("--setup", required=True, help="joint setup file (kneegui-setup JSON)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--setup", help="joint setup file (kneegui-setup JSON)")
+    source.add_argument(
+        "--suggest",
+        metavar="OUT_JSON",
+        help="write a setup suggested from part titles and bone geometry to OUT_JSON, then use it",
+    )
+    parser.add_argument(
+        "--side", choices=("right", "left"), help="knee to set up (required with --suggest)"
+    )
+    parser.add_argument(
+        "--moving-segment",
+        choices=("tibia", "femur"),
+        default="tibia",
+        help="segment that moves (with --suggest; default tibia)",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
 
 
@@ -46,12 +65,21 @@ def format_axes(result: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from kneegui.errors import SetupError
     from kneegui.geometry.axes import compute_joint_axes
     from kneegui.io.lsdyna import read_deck
-    from kneegui.setup.format import load_setup
+    from kneegui.setup.format import load_setup, save_setup
+    from kneegui.setup.landmarks import suggest_setup
 
+    if args.suggest and not args.side:
+        raise SetupError("--suggest needs --side right or --side left", key="side")
     model = read_deck(args.model)
-    setup = load_setup(args.setup, model)
+    if args.suggest:
+        data = suggest_setup(model, args.side, moving_segment=args.moving_segment)
+        setup = load_setup(data, model)
+        save_setup(setup, args.suggest)
+    else:
+        setup = load_setup(args.setup, model)
     axes = compute_joint_axes(model.coords, setup)
     result = axes.to_dict()
     result["warnings"] = [*setup.warnings, *axes.warnings]

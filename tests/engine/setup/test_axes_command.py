@@ -58,3 +58,27 @@ def test_bad_setup_exits_2(deck, capsys, tmp_path):
     assert main(["axes", str(folder / "knee.k"), "--setup", str(bad)]) == 2
     err = capsys.readouterr().err
     assert err.strip() == f"kneegui: {bad}: roles.femur: unknown part id 4242"
+
+
+def test_suggest_writes_a_valid_setup(deck, capsys, tmp_path):
+    folder, _knee = deck
+    out = tmp_path / "suggested.json"
+    assert (
+        main(["axes", str(folder / "knee.k"), "--suggest", str(out), "--side", "left", "--json"])
+        == 0
+    )
+    result = json.loads(capsys.readouterr().out)
+    assert result["lateral_radius"] == pytest.approx(20.5, abs=0.05)
+    assert result["medial_radius"] == pytest.approx(23.3, abs=0.05)
+    assert result["initial_flexion"] == pytest.approx(12.0, abs=0.5)
+    data = json.loads(out.read_text())
+    assert data["side"] == "left" and data["roles"]["femur"] == [101, 102]
+    # the written file is reusable
+    assert main(["axes", str(folder / "knee.k"), "--setup", str(out)]) == 0
+
+
+def test_suggest_needs_a_side(deck, capsys, tmp_path):
+    folder, _ = deck
+    assert main(["axes", str(folder / "knee.k"), "--suggest", str(tmp_path / "s.json")]) == 2
+    assert "--suggest needs --side" in capsys.readouterr().err
+    assert not (tmp_path / "s.json").exists()
