@@ -30,6 +30,9 @@ EXPECTED = {
     "Tibialis_Anterior_R": "flesh",
     "Biceps_Femoris": "flesh",
     "Fat_Knee": "flesh",
+    "Artery_Femoral_R": "flesh",
+    "Vein_Popliteal": "flesh",
+    "Nerve_Sciatic": "flesh",
     "Skin_LowerExt": "skin",
     "LX-Skin-R": "skin",
     "Lig_ACL": "ligament",
@@ -46,7 +49,7 @@ EXPECTED = {
     "Talus_R": "fixed",
     "Calcaneus": "fixed",
 }
-UNMATCHED = ["Blood_Vessel", "Part 17", "Nerve_Sciatic", "Airbag"]
+UNMATCHED = ["Part 17", "Airbag", "Cortical_Bone_17", "Seat_Foam"]
 
 
 @pytest.mark.parametrize(("title", "role"), EXPECTED.items())
