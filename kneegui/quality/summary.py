@@ -125,12 +125,13 @@ def volume_change(
 
 def _group(
     flat: _Flat,
-    mask: NDArray[np.bool_],
+    mask: NDArray[np.int64],
     limits: dict[str, tuple[NDArray, NDArray]],
     thresholds: Thresholds,
     initial: _Flat | None,
 ) -> dict:
-    out: dict = {"elements": int(mask.sum()), "inverted": int(flat.inverted[mask].sum())}
+    """Statistics of the elements at positions ``mask`` (an index array) of the flat arrays."""
+    out: dict = {"elements": len(mask), "inverted": int(np.count_nonzero(flat.inverted[mask]))}
     directions = thresholds.for_role(None)
     for m in THRESHOLD_METRICS:
         v = flat.values[m][mask]
@@ -154,8 +155,8 @@ def _group(
             entry["worse_than_initial"] = int(np.count_nonzero(t.worse_than(v, worst0)))
         out[m] = entry
     if initial is not None:
-        solid = mask & flat.solid
-        out["initial_inverted"] = int(initial.inverted[mask].sum())
+        solid = mask[flat.solid[mask]]
+        out["initial_inverted"] = int(np.count_nonzero(initial.inverted[mask]))
         out["volume_change"] = volume_change(
             flat.volume[solid], initial.volume[solid], flat.element_ids[solid]
         )
@@ -215,7 +216,7 @@ def summarize_quality(
                 in_role = np.isin(flat.part_ids, [p for p, r in part_role.items() if r == role])
                 warn[in_role], fail[in_role] = t.warn, t.fail
         limits[m] = (warn, fail)
-    everything = np.ones(len(flat.part_ids), dtype=bool)
+    everything = np.arange(len(flat.part_ids))
     summary: dict = {
         "metrics": list(THRESHOLD_METRICS),
         "thresholds": thresholds.to_dict(),
@@ -223,14 +224,18 @@ def summarize_quality(
         "parts": {},
         "roles": {},
     }
-    for pid in np.unique(flat.part_ids).tolist():
-        group = _group(flat, flat.part_ids == pid, limits, thresholds, init)
+    order = np.argsort(flat.part_ids, kind="stable")
+    pids_sorted = flat.part_ids[order]
+    unique_pids, starts = np.unique(pids_sorted, return_index=True)
+    bounds = [*starts.tolist(), len(order)]
+    for k, pid in enumerate(unique_pids.tolist()):
+        group = _group(flat, order[bounds[k] : bounds[k + 1]], limits, thresholds, init)
         part = model.parts.get(pid)
         group["title"] = part.title if part is not None else ""
         group["role"] = part_role.get(pid)
         summary["parts"][str(pid)] = group
     for role, pids in roles.items():
-        group = _group(flat, np.isin(flat.part_ids, pids), limits, thresholds, init)
+        group = _group(flat, np.flatnonzero(np.isin(flat.part_ids, pids)), limits, thresholds, init)
         group["part_ids"] = sorted(pids)
         summary["roles"][role] = group
     return summary
