@@ -1,0 +1,236 @@
+"""``python -m bench``: the whole benchmark, written to docs/benchmarks.md plus a JSON of raw data.
+
+Runs, each in a fresh process with a wall-clock budget: the pipeline stages on the demo leg at
+≈2k, ≈20k (paper scale), ≈200k and ≈1M solids (:func:`bench.pose_bench.measure_size`); the
+baseline comparison at paper scale (:func:`bench.pose_bench.measure_baselines`); the GUI frame
+time under Xvfb (``bench/gui_bench.py``, skipped with a message when it is absent or no display
+can be made). Then writes bench/results/benchmarks.json, docs/benchmarks.md and
+docs/images/bench-scaling.png / bench-inverted.png (:mod:`bench.report`).
+
+The default budgets add up to less than 15 minutes on the 2-core development machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+PAPER_SCALE = 20_000
+#: Requested demo sizes and the wall-clock budget (s) of each one's process.
+SIZE_BUDGETS: dict[int, float] = {2_000: 45, 20_000: 90, 200_000: 180, 1_000_000: 240}
+BASELINE_BUDGET_S = 240.0
+GUI_BUDGET_S = 75.0
+GUI_STEPS = 40
+QUICK_SIZE = 2_000
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    """Options of ``python -m bench`` (also used by ``kneegui bench``)."""
+    parser = parser or argparse.ArgumentParser(prog="python -m bench", description=__doc__)
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"smoke test: the ~{QUICK_SIZE:,}-element demo only, one repeat, 120 deg only, "
+        "default method, no GUI (writes to bench/results/quick/ unless --out-dir is given)",
+    )
+    parser.add_argument("--repeats", type=int, default=None, help="runs per cheap stage (5)")
+    parser.add_argument(
+        "--heavy-repeats", type=int, default=None, help="runs per precompute and smoothing (1)"
+    )
+    parser.add_argument(
+        "--budget-scale",
+        type=float,
+        default=1.0,
+        help="multiply every process's wall-clock budget (default budgets total < 15 min)",
+    )
+    parser.add_argument("--no-gui", action="store_true", help="skip the GUI frame-time stage")
+    parser.add_argument(
+        "--out-dir",
+        type=Path,
+        default=None,
+        help="write docs/benchmarks.md, docs/images/ and bench/results/ under this directory "
+        "(default: the repository)",
+    )
+    return parser
+
+
+def _display_command() -> list[str] | None:
+    """Prefix that gives the GUI child a display, or None if none can be made."""
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return []
+    if shutil.which("xvfb-run"):
+        return ["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24"]
+    return None
+
+
+def run_gui(elements: int, budget_s: float, steps: int = GUI_STEPS) -> dict[str, Any]:
+    """GUI frame time of a slider step on the demo of ``elements`` (or why it was skipped)."""
+    if not (ROOT / "bench" / "gui_bench.py").exists():
+        return {"skipped": "bench/gui_bench.py is not in this checkout"}
+    prefix = _display_command()
+    if prefix is None:
+        return {"skipped": "no display and no xvfb-run to make one"}
+    with tempfile.TemporaryDirectory(prefix="kneegui-bench-gui-") as tmp:
+        out = Path(tmp) / "gui.json"
+        cmd = [
+            *prefix,
+            sys.executable,
+            "-m",
+            "bench.gui_bench",
+            "--elements",
+            str(elements),
+            "--steps",
+            str(steps),
+            "--out",
+            str(out),
+            "--markdown",
+            str(Path(tmp) / "gui.md"),
+        ]
+        try:
+            proc = subprocess.run(
+                cmd, cwd=ROOT, capture_output=True, text=True, timeout=budget_s, check=False
+            )
+        except subprocess.TimeoutExpired:
+            return {"skipped": f"the GUI did not finish within its {budget_s:.0f} s budget"}
+        if proc.returncode != 0 or not out.exists():
+            last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+            return {"skipped": f"the GUI benchmark failed: {last[:200]}"}
+        return json.loads(out.read_text(encoding="utf-8"))
+
+
+def _attach_gui(results: dict[str, Any], gui: dict[str, Any], elements: int) -> None:
+    """Put the GUI frame time into the size records as the ``gui_frame`` stage."""
+    for rec in results["sizes"]:
+        if gui.get("skipped"):
+            rec.setdefault("stages", {})["gui_frame"] = {"skipped": gui["skipped"]}
+        elif rec.get("requested_elements") != elements:
+            rec.setdefault("stages", {})["gui_frame"] = {"skipped": "measured at paper scale only"}
+        else:
+            parts = gui["results"]["part_colours"]
+            heat = gui["results"].get("jacobian_heatmap", {})
+            rec.setdefault("stages", {})["gui_frame"] = {
+                "seconds": parts["median_frame_ms"] / 1e3,
+                "repeats": parts["updates"],
+                "heatmap_seconds": heat.get("median_frame_ms", float("nan")) / 1e3,
+                "updates_per_s": parts.get("updates_per_s"),
+            }
+
+
+def run_benchmarks(args: argparse.Namespace, log=print) -> dict[str, Any]:
+    """Run every measurement and return the results dict (nothing written)."""
+    from bench.machine import machine_description
+    from bench.pose_bench import ANGLES, SLIDER_ANGLE, run_child
+
+    quick = bool(args.quick)
+    repeats = args.repeats or (1 if quick else 5)
+    heavy = args.heavy_repeats or 1
+    scale = args.budget_scale
+    sizes = {QUICK_SIZE: 120.0} if quick else dict(SIZE_BUDGETS)
+    paper_scale = QUICK_SIZE if quick else PAPER_SCALE
+    angles = (120.0,) if quick else ANGLES
+    started = time.time()
+    results: dict[str, Any] = {
+        "started_utc": dt.datetime.fromtimestamp(started, dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "load_average_start": " / ".join(f"{x:.1f}" for x in os.getloadavg()),
+        "machine": machine_description(),
+        "config": {
+            "command": "python -m bench --quick" if quick else "python -m bench",
+            "json_name": "benchmarks.json" if quick else "bench/results/benchmarks.json",
+            "quick": quick,
+            "repeats": repeats,
+            "heavy_repeats": heavy,
+            "size_budgets_s": {str(k): v * scale for k, v in sizes.items()},
+            "baseline_budget_s": (120.0 if quick else BASELINE_BUDGET_S) * scale,
+            "paper_scale": paper_scale,
+            "largest": max(sizes),
+            "angles": list(angles),
+            "slider_angle": SLIDER_ANGLE,
+        },
+        "sizes": [],
+    }
+    for elements, budget in sizes.items():
+        log(f"[bench] demo ~{elements:,} elements: stages (budget {budget * scale:.0f} s)")
+        reps = repeats if elements < 1_000_000 else min(repeats, 3)
+        rec = run_child("size", elements, reps, heavy, budget * scale)
+        log(f"[bench]   {rec['status']} in {rec['wall_s']:.0f} s")
+        results["sizes"].append(rec)
+    log(f"[bench] baselines on ~{paper_scale:,} elements at {', '.join(f'{a:g}' for a in angles)}")
+    results["baselines"] = run_child(
+        "baselines",
+        paper_scale,
+        repeats,
+        heavy,
+        results["config"]["baseline_budget_s"],
+        angles=angles,
+        methods=() if quick else None,
+    )
+    log(f"[bench]   {results['baselines']['status']} in {results['baselines']['wall_s']:.0f} s")
+    if quick or args.no_gui:
+        gui = {"skipped": "--quick" if quick else "--no-gui"}
+    else:
+        log("[bench] GUI frame time")
+        gui = run_gui(paper_scale, GUI_BUDGET_S * scale)
+    results["gui"] = gui
+    _attach_gui(results, gui, paper_scale)
+    results["duration_s"] = time.time() - started
+    return results
+
+
+def write_outputs(results: dict[str, Any], out_dir: Path, quick: bool) -> dict[str, Path]:
+    """Write the JSON, the markdown and the plots; return their paths."""
+    from bench import report
+
+    if quick:
+        paths = {
+            "json": out_dir / "benchmarks.json",
+            "markdown": out_dir / "benchmarks.md",
+            "scaling": out_dir / "images" / "bench-scaling.png",
+            "inverted": out_dir / "images" / "bench-inverted.png",
+        }
+    else:
+        paths = {
+            "json": out_dir / "bench" / "results" / "benchmarks.json",
+            "markdown": out_dir / "docs" / "benchmarks.md",
+            "scaling": out_dir / "docs" / "images" / "bench-scaling.png",
+            "inverted": out_dir / "docs" / "images" / "bench-inverted.png",
+        }
+    for p in paths.values():
+        p.parent.mkdir(parents=True, exist_ok=True)
+    paths["json"].write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
+    report.plot_scaling(results, paths["scaling"])
+    report.plot_inverted(results, paths["inverted"])
+    paths["markdown"].write_text(report.to_markdown(results), encoding="utf-8")
+    return paths
+
+
+def run_from_args(args: argparse.Namespace, log=print) -> int:
+    """Run and write; the entry of both ``python -m bench`` and ``kneegui bench``."""
+    out_dir = args.out_dir
+    if out_dir is None:
+        out_dir = ROOT / "bench" / "results" / "quick" if args.quick else ROOT
+    results = run_benchmarks(args, log)
+    paths = write_outputs(results, Path(out_dir), bool(args.quick))
+    log(
+        f"[bench] done in {results['duration_s']:.0f} s; wrote "
+        + ", ".join(str(p) for p in paths.values())
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_from_args(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
