@@ -82,7 +82,7 @@ class DemoDesign:
     plateau_medial_y: float = 43.0
     plateau_rim_drop: float = 3.0
     tibial_slope_deg: float = 9.0  # posterior slope of the plateau (cancels the initial flexion)
-    cartilage_gap: float = 3.0  # femur to plateau at the compartment centres, after flexion
+    cartilage_gap: float = 3.5  # femur to plateau at the compartment centres, after flexion
     meniscus_max_height: float = 7.0
     min_flesh_thickness: float = 15.0  # soft minimum bone-to-skin distance
     # levels (straight pose, nominal z at the skin)
@@ -187,7 +187,7 @@ class DemoDesign:
     # ------------------------------------------------------------------ tibia (tibia frame)
     def tibia_knee_weight(self, z: ArrayLike) -> FloatArray:
         """1 where the tibia has its plateau shape, 0 on the shaft."""
-        return smoothstep((np.asarray(z, dtype=np.float64) + 85.0) / 47.0)
+        return smoothstep((np.asarray(z, dtype=np.float64) + 140.0) / 102.0)
 
     def tibia_shaft_radius_at(self, z: ArrayLike) -> FloatArray:
         """Shaft radius, widening towards the distal tibia."""

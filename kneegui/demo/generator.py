@@ -108,6 +108,52 @@ def count_solids(layout: Layout) -> int:
     return int(np.count_nonzero(labels != g.VOID))
 
 
+def quality_problems(model: Model) -> list[str]:
+    """Which default quality bounds (``resources/quality_thresholds.csv``, role ``*``: corner
+    Jacobian, aspect ratio, warpage; and no inverted element) the model breaks; [] if none."""
+    from kneegui.quality import compute_quality, load_thresholds
+
+    limits = load_thresholds().for_role(None)
+    q = compute_quality(model.coords, model.blocks)
+    problems = []
+    if q.n_inverted:
+        problems.append(f"{q.n_inverted} inverted elements")
+    for metric, name in (
+        ("jacobian", "jacobian_corner"),
+        ("aspect", "aspect"),
+        ("warpage", "warpage"),
+    ):
+        t = limits[metric]
+        values = np.concatenate([eq.metric(name) for eq in q.by_type.values()])
+        bad = int(np.count_nonzero(t.worse_than(values, t.fail)))
+        if bad:
+            problems.append(f"{bad} elements with {metric} worse than {t.fail}")
+    return problems
+
+
+def candidate_layouts(elements: int, tries: int = 9) -> list[Layout]:
+    """Layouts near ``elements`` solids: the nearest first, then its neighbours in resolution
+    (alternately finer and coarser), each with a different block structure."""
+    first = layout_for(elements)
+    out, seen = [first], {_signature(first)}
+    for m in range(1, 40):
+        for sign in (1, -1):
+            lay = make_layout(first.factor * 1.03 ** (sign * m))
+            sig = _signature(lay)
+            if sig in seen:
+                continue
+            seen.add(sig)
+            if abs(count_solids(lay) - elements) <= 0.3 * elements:
+                out.append(lay)
+            if len(out) >= tries:
+                return out
+    return out
+
+
+def _signature(lay: Layout) -> tuple:
+    return (lay.rows.counts, lay.cols.counts, lay.rings.counts, lay.slabs.counts)
+
+
 def layout_for(elements: int) -> Layout:
     """The layout whose solid count is nearest ``elements`` (bisection on the resolution)."""
     lo, hi = 0.05, 20.0
@@ -138,8 +184,11 @@ def generate_demo_leg(
     ----------
     elements : int
         Wanted number of solid (hex) elements; the nearest the block structure allows is built.
-        The coarsest model has about 3,000 solids; 20,000 is the default (the paper's model had
-        about 19,000); over 1,000,000 works for benchmarks.
+        The coarsest model has about 5,000 solids; 20,000 is the default (the paper's model had
+        about 19,000); over 1,000,000 works for benchmarks. Among the resolutions within 30 % of
+        the request, the nearest whose mesh meets the default quality bounds (no inverted
+        element, corner Jacobian >= 0.3, aspect <= 10, warpage <= 30 degrees) is returned;
+        if none does, the nearest is returned with ``stats["quality_problems"]`` listing why.
     side : {"right", "left"}
         The leg. A left leg is the right one mirrored in y, with element node orders flipped so
         that no element is inverted.
@@ -162,9 +211,18 @@ def generate_demo_leg(
             f"elements must be between {MIN_ELEMENTS:,} and {MAX_ELEMENTS:,}, got {elements}"
         )
     design = design or DemoDesign()
-    layout = layout_for(int(elements))
-    grid = g.build_grid(design, layout)
-    return _assemble(grid, design, side)
+    best = None
+    for layout in candidate_layouts(int(elements)):
+        leg = _assemble(g.build_grid(design, layout), design, side)
+        problems = quality_problems(leg.model)
+        if not problems:
+            return leg
+        if best is None:
+            best = (leg, problems)
+    # no nearby resolution meets every bound: return the nearest one and say why
+    leg, problems = best
+    leg.stats["quality_problems"] = problems
+    return leg
 
 
 def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:

@@ -152,7 +152,7 @@ def _bulged_square(centre, radius, s, t, bulge=0.6):
     return post, ant, lat, med
 
 
-def _pull_corners(sides, corners, depth, length):
+def _pull_corners(sides, corners, depth, length, y_only=False):
     """Round corners: move every side point towards the middle by a Gaussian bump of ``depth``
     (mm) and width ``length`` (mm) around each corner (a smooth field, so sides stay consistent
     at shared corners and nothing folds)."""
@@ -163,6 +163,8 @@ def _pull_corners(sides, corners, depth, length):
         moved = pts.copy()
         for c in corners:
             u = (centre - c) / np.linalg.norm(centre - c)
+            if y_only:
+                u = np.array([0.0, np.sign(u[1])])
             bump = np.exp(-np.sum((pts - c) ** 2, axis=1) / length**2)
             moved += depth * bump[:, None] * u
         out.append(moved)
@@ -201,6 +203,18 @@ def _smooth_along(values: FloatArray, z: FloatArray, sigma: float) -> FloatArray
     w = np.exp(-0.5 * ((z[:, None] - z[None, :]) / sigma) ** 2)
     w /= w.sum(axis=1, keepdims=True)
     return np.tensordot(w, values, axes=(1, 0))
+
+
+def _smooth_index(z: FloatArray, sigma: float) -> FloatArray:
+    """Gaussian smoothing of a monotonic sequence over its index, ends kept in place."""
+    n = len(z)
+    i = np.arange(n)
+    w = np.exp(-0.5 * ((i[:, None] - i[None, :]) / sigma) ** 2)
+    # mirror-free: smooth the increments, then rescale them to keep both ends fixed
+    dz = np.diff(z)
+    dzs = (w[:-1, :-1] @ dz) / w[:-1, :-1].sum(axis=1)
+    dzs *= (z[-1] - z[0]) / dzs.sum()
+    return np.concatenate([[z[0]], z[0] + np.cumsum(dzs)])
 
 
 def _soft_skin(origin, bone_xy, ellipse, t_min):
@@ -290,22 +304,25 @@ def build_grid(design: DemoDesign, lay: Layout) -> Grid:
     # rays to the skin start from a smoothed bone outline so that the skin stays smooth where
     # the bone outline changes abruptly (joint gap, notch)
     bnd_straight = core.reshape(lay.nk + 1, -1, 3)[:, ix.perim_core]  # (NK+1, P, 3)
-    smooth_xy = _smooth_along(bnd_straight[..., :2], zn, sigma=12.0)
+    smooth_xy = _smooth_along(bnd_straight[..., :2], zn, sigma=14.0)
     origins = smooth_xy.mean(axis=1)
+    # the skin's layer heights: the nominal ones evened out over a few layers, so that thin
+    # joint slabs open up towards the skin
+    z_skin = _smooth_index(zn, 2.0)
     skin = np.zeros((lay.nk + 1, ix.P, 3))
     thickness = np.zeros((lay.nk + 1, ix.P))
     for k in range(lay.nk + 1):
         skin[k, :, :2] = _soft_skin(
             origins[k], smooth_xy[k], design.skin_ellipse(zn[k]), design.min_flesh_thickness
         )
-        skin[k, :, 2] = zn[k]
+        skin[k, :, 2] = z_skin[k]
         thickness[k] = np.linalg.norm(skin[k, :, :2] - bnd_straight[k, :, :2], axis=1)
     skin = rotate_about_y(skin, w_skin * phi)
     # rings: straight segments from the (posed) bone outline to the (posed) skin
     bnd = core_final.reshape(lay.nk + 1, -1, 3)[:, ix.perim_core]
     contexts = _ring_contexts(lay, ix, zn)
     for k in range(lay.nk + 1):
-        g = _ring_fractions(lay, contexts[0][k], contexts[1][k], thickness[k])  # (NR, P)
+        g = _ring_fractions(lay, *(c[k] for c in contexts), thickness[k])  # (NR, P)
         ring = bnd[k][None] + g[..., None] * (skin[k] - bnd[k])[None]
         layers[k, ix.n_core :] = ring.reshape(-1, 3)
 
@@ -318,7 +335,7 @@ def _void_gap(design: DemoDesign, femur_bottom: FloatArray, ix: _Index) -> float
     """Gap between meniscus top and femur: about 1/6 of the knee's perimeter cell size, >= 1 mm."""
     bnd = femur_bottom.reshape(-1, 3)[ix.perim_core]
     perim = np.linalg.norm(np.diff(np.vstack([bnd, bnd[:1]]), axis=0), axis=1).sum()
-    return max(1.0, perim / ix.P / 6.0)
+    return max(2.0, perim / ix.P / 4.0)
 
 
 def _femur_layer(design, zn, k, k_fb, k_n1, s_u, t_u, s_k, t_k, w_med):
@@ -396,16 +413,18 @@ def _sector_nodes(ix: _Index, cell_mask: NDArray[np.bool_], spread: int) -> Floa
     return np.clip(1.0 - gap / (spread + 1.0), 0.0, 1.0)
 
 
-def _ring_contexts(lay: Layout, ix: _Index, zn: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Weights ``(NK + 1, P)`` of the patella and fibula ring distributions.
+def _ring_contexts(lay: Layout, ix: _Index, zn: FloatArray) -> tuple[FloatArray, ...]:
+    """Weights ``(NK + 1, P)`` of the ring-distribution contexts.
 
-    Around the front of the knee the inner ring block is the thin patello-femoral gap and the
-    mid block the patella; in the postero-lateral calf the mid block is the fibula.
+    ``anterior``: front of the knee, where the mid ring block holds the patella and the patellar
+    tendon runs along its outer face; ``gap``: the patella's levels, where the inner block is the
+    thin patello-femoral gap; ``fibula``: the postero-lateral calf, where the mid block is the
+    fibula.
     """
     side, idx = ix.ring_cell_side(np.arange(ix.P))
     spread = max(2, round(0.08 * ix.P))
     c0, c1 = lay.cols.range("lat_nw", "med_nw")
-    pat = _sector_nodes(ix, (side == 1) & (idx >= c0) & (idx < c1), spread)
+    ant = _sector_nodes(ix, (side == 1) & (idx >= c0) & (idx < c1), spread)
     r0, r1 = lay.rows.range("pcl", "acl")
     f0, f1 = lay.cols.range("lat_rim") if lay.cols.counts[0] else (0, 1)
     fib = _sector_nodes(
@@ -413,37 +432,47 @@ def _ring_contexts(lay: Layout, ix: _Index, zn: FloatArray) -> tuple[FloatArray,
         ((side == 0) & (idx >= r0) & (idx < r1)) | ((side == 3) & (idx >= f0) & (idx < f1)),
         spread,
     )
-    z_pat = smoothstep((zn + 45.0) / 30.0) * (1.0 - smoothstep((zn - 50.0) / 35.0))
+    z_ant = smoothstep((zn + 45.0) / 30.0) * (1.0 - smoothstep((zn - 50.0) / 35.0))
+    z_gap = smoothstep((zn + 12.0) / 14.0) * (1.0 - smoothstep((zn - 45.0) / 20.0))
     z_fib = 1.0 - smoothstep((zn + 38.0) / 30.0)
-    return z_pat[:, None] * pat[None, :], z_fib[:, None] * fib[None, :]
+    return (
+        z_ant[:, None] * ant[None, :],
+        z_gap[:, None] * np.ones(ix.P)[None, :],
+        z_fib[:, None] * fib[None, :],
+    )
 
 
 #: Ring fractions (end of inner block, end of mid block) by context.
 RING_SPLIT_DEFAULT = (0.14, 0.30)
-RING_SPLIT_PATELLA = (0.09, 0.72)
+RING_SPLIT_ANTERIOR = (0.30, 0.74)
+RING_SPLIT_PF_GAP = 0.16
 RING_SPLIT_FIBULA = (0.15, 0.45)
 
 
 def _ring_fractions(
-    lay: Layout, a_pat: FloatArray, a_fib: FloatArray, thickness: FloatArray
+    lay: Layout, a_ant: FloatArray, a_gap: FloatArray, a_fib: FloatArray, thickness: FloatArray
 ) -> FloatArray:
     """Fraction of the way bone -> skin of the ring nodes of one layer, ``(NR, P)``.
 
-    Three blocks (inner, mid, outer) whose split points blend between the default, patella and
-    fibula contexts; spacing is uniform inside the inner and mid blocks and grows geometrically
-    through the outer block. Where the flesh is thin (``thickness``, mm) the default becomes
-    uniform, so that thin flesh is not cut into slivers.
+    Three blocks (inner, mid, outer) whose split points blend between the default and the
+    context splits; spacing is uniform inside the inner and mid blocks and, in the default
+    context, grows geometrically through the outer block. Where the flesh is thin
+    (``thickness``, mm) the default becomes uniform, so that thin flesh is not cut into slivers.
     """
     n_in, n_mid, n_out = lay.rings.counts
     r = np.arange(1, lay.nr + 1)[:, None]
-    thick = smoothstep((thickness - 20.0) / 40.0)[None, :]
+    thick = smoothstep((thickness - 20.0) / 40.0)
     uniform = np.array([n_in / lay.nr, (n_in + n_mid) / lay.nr])[:, None]
-    default = (1 - thick) * uniform + thick * np.array(RING_SPLIT_DEFAULT)[:, None]
-    split = default * (1 - a_pat - a_fib)[None, :]
-    split = split + np.array(RING_SPLIT_PATELLA)[:, None] * a_pat[None, :]
-    split = split + np.array(RING_SPLIT_FIBULA)[:, None] * a_fib[None, :]
-    g_in, g_mid = split
-    q = (1.0 + 2.0 * thick) ** (1.0 / n_out) + 1e-9  # outermost ring up to 3x the first
+    default = (1 - thick[None, :]) * uniform + thick[None, :] * np.array(RING_SPLIT_DEFAULT)[
+        :, None
+    ]
+    fibula = (1 - thick[None, :]) * uniform + thick[None, :] * np.array(RING_SPLIT_FIBULA)[:, None]
+    rest = 1 - a_ant - a_fib
+    g_in = default[0] * rest + a_fib * fibula[0]
+    g_in = g_in + a_ant * ((1 - a_gap) * RING_SPLIT_ANTERIOR[0] + a_gap * RING_SPLIT_PF_GAP)
+    g_mid = default[1] * rest + a_fib * fibula[1] + a_ant * RING_SPLIT_ANTERIOR[1]
+    g_in, g_mid = g_in[None, :], g_mid[None, :]
+    q = (1.0 + 2.0 * thick * rest) ** (1.0 / n_out) + 1e-9  # outermost ring up to 3x the first
     m = np.clip(r - n_in - n_mid, 0, None)
     outer = (q**m - 1.0) / (q**n_out - 1.0)
     return np.where(

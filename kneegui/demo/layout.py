@@ -39,14 +39,14 @@ COL_BLOCKS = (
     ("med_out", 1, 14.0),
     ("med_rim", 0, 9.0),
 )
-RING_BLOCKS = (("inner", 1, 12.0), ("mid", 1, 14.0), ("outer", 2, 30.0))
+RING_BLOCKS = (("inner", 1, 12.0), ("mid", 1, 20.0), ("outer", 2, 18.0))
 # (name, minimum count, nominal z start, end, size factor relative to the in-plane size)
 SLAB_BLOCKS = (
-    ("calf", 0, -400.0, -75.0, 0.0),  # count from the shaft aspect rule
-    ("tibmeta", 2, -75.0, -55.0, 0.6),
+    ("calf", 0, -400.0, -140.0, 0.0),  # count from the shaft aspect rule
+    ("tibmeta", 2, -140.0, -55.0, 0.85),
     ("tub", 1, -55.0, -40.0, 0.5),
     ("tibcond", 2, -40.0, -24.0, 0.5),
-    ("men", 1, -24.0, -19.0, 0.5),
+    ("men", 1, -24.0, -19.0, 1.0),
     ("void", 1, -19.0, -14.0, 1e9),  # always one slab
     ("notch1", 2, -14.0, 2.0, 0.45),
     ("notch2", 1, 2.0, 6.0, 0.45),

@@ -16,7 +16,7 @@ from kneegui.geometry.circle_fit import fit_circle_2d
 from kneegui.quality import compute_quality
 from kneegui.setup.format import ROLES, load_setup
 
-SIZES_WITH_QUALITY = (20_000, 100_000)
+SIZES_WITH_QUALITY = (12_000, 20_000, 50_000, 100_000)
 
 
 @pytest.fixture(scope="module")
@@ -163,6 +163,7 @@ def test_joint_gap_is_not_bridged_by_flesh_or_menisci(leg):
 @pytest.mark.parametrize("elements", SIZES_WITH_QUALITY)
 def test_quality_bounds(elements):
     leg = generate_demo_leg(elements)
+    assert "quality_problems" not in leg.stats
     q = compute_quality(leg.model.coords, leg.model.blocks)
     assert q.n_inverted == 0
     for etype, eq in q.by_type.items():
@@ -306,3 +307,10 @@ def test_million_element_model_in_under_two_minutes():
     leg = generate_demo_leg(1_000_000)
     assert time.perf_counter() - t0 < 120.0
     assert len(leg.model.blocks["hex8"]) >= 1_000_000 * 0.9
+    assert "quality_problems" not in leg.stats
+    q = compute_quality(leg.model.coords, leg.model.blocks)
+    assert q.n_inverted == 0
+    for eq in q.by_type.values():
+        assert eq.metric("jacobian_corner").min() >= 0.3
+        assert eq.metric("aspect").max() <= 10.0
+        assert eq.metric("warpage").max() <= 30.0
