@@ -40,9 +40,12 @@ class Viewport(QWidget):
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
         self.plotter = QtInteractor(self, auto_update=False)
-        self.plotter.set_background("#20242b", top="#4a5361")
+        self.plotter.set_background(
+            "#2b3038"
+        )  # flat: a gradient costs ~10 ms a frame in software GL
         # software GL (Mesa llvmpipe under Xvfb) renders 2-3x faster without multisampling
         self.plotter.ren_win.SetMultiSamples(0)
+        self.plotter.ren_win.AddObserver("EndEvent", self._count_render)
         layout.addWidget(self.plotter)
         self.plotter.add_axes()
         self.surfaces: dict[int, PartSurface] = {}
@@ -55,11 +58,18 @@ class Viewport(QWidget):
         self._scalar_title = ""
         self._clip_plane = vtk.vtkPlane()
         self._dirty: set[str] = set()
-        self.renders = 0
+        self.renders = 0  # VTK renders done (counted by the render window)
+        self.flushes = 0  # batched updates applied
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
         self._timer.setInterval(0)
         self._timer.timeout.connect(self.flush)
+        # circles and axes are re-fitted once the pose has settled, not on every slider step
+        self._axes_timer = QTimer(self)
+        self._axes_timer.setSingleShot(True)
+        self._axes_timer.setInterval(200)
+        self._axes_timer.timeout.connect(lambda: self.request("axes"))
+        self._landmark_points: dict[str, tuple[pv.PolyData, object]] = {}
         self._picker = _PickFilter(self)
         self.plotter.installEventFilter(self._picker)
         ws = workspace
@@ -86,25 +96,39 @@ class Viewport(QWidget):
         dirty, self._dirty = self._dirty, set()
         if not dirty or self.ws.model is None or not self.actors:
             return
+        self.flushes += 1
         if "points" in dirty:
             self._update_points()
-            if self.ws.colour_mode != "part" or self.ws.threshold is not None:
-                dirty.add("colour")
-            dirty.add("landmarks")
+            if not dirty & {"colour", "threshold", "visibility"}:
+                self._update_values()
+            self._move_landmarks()
+            self._axes_timer.start()
         if "visibility" in dirty:
             for pid, actor in self.actors.items():
                 actor.SetVisibility(pid not in self.ws.hidden_parts)
-        if "colour" in dirty or "threshold" in dirty:
+        if dirty & {"colour", "threshold", "visibility"}:
             self._update_colours()
         if "clip" in dirty:
             self._update_clip()
         if "landmarks" in dirty:
-            self._update_landmarks()
+            self._build_landmarks()
+            dirty.add("axes")
+        if "axes" in dirty:
+            self._update_axes_overlay()
         self.render()
 
-    def render(self) -> None:
-        """Render now."""
-        self.plotter.render()
+    def render(self, now: bool = False) -> None:
+        """Schedule one repaint of the 3-D view (``now``: repaint before returning).
+
+        The interactor is a QOpenGLWidget whose paint renders the VTK scene, so asking Qt for a
+        repaint renders exactly once (``plotter.render()`` would render, then paint again).
+        """
+        if now:
+            self.plotter.repaint()
+        else:
+            self.plotter.update()
+
+    def _count_render(self, *_args) -> None:
         self.renders += 1
 
     # ------------------------------------------------------------------ scene
@@ -160,7 +184,19 @@ class Viewport(QWidget):
                 grid.GetPoints().Modified()
 
     # ------------------------------------------------------------------ colours
+    def _displayed_cells(self) -> NDArray[np.int64]:
+        """Global cells that own a face of a visible part (the ones the heat-map shows)."""
+        chunks = [s.cell_index for p, s in self.surfaces.items() if p not in self.ws.hidden_parts]
+        return np.unique(np.concatenate(chunks)) if chunks else np.zeros(0, dtype=np.int64)
+
+    def _colour_values(self, cells: NDArray[np.int64] | None) -> NDArray[np.float64]:
+        ws = self.ws
+        if ws.colour_mode == "quality":
+            return ws.element_values(ws.metric, cells)
+        return ws.ligament_stretch_values()
+
     def _update_colours(self) -> None:
+        """Set up the colouring (mode, metric, look-up table, scalar bar) and all face values."""
         ws = self.ws
         self._colour_parts()
         mode = ws.colour_mode
@@ -172,13 +208,12 @@ class Viewport(QWidget):
                 actor.mapper.SetScalarVisibility(False)
             self._set_highlight(None)
             return
+        values = self._colour_values(None)
         if mode == "quality":
-            values = ws.element_values(ws.metric)
             title = HEATMAP_METRICS[ws.metric][0]
             cmap = "RdYlBu" if HEATMAP_METRICS[ws.metric][2] else "RdYlBu_r"
             clim = _quality_clim(ws.metric, values)
         else:
-            values = ws.ligament_stretch_values()
             title = "Fibre stretch"
             cmap = "coolwarm"
             finite = values[np.isfinite(values)]
@@ -190,9 +225,7 @@ class Viewport(QWidget):
         first = None
         for pid, surf in self.surfaces.items():
             face_values = values[surf.cell_index]
-            arr = surf.mesh.cell_data["value"]
-            arr[:] = face_values
-            surf.mesh.cell_data["value"] = arr
+            self._write_values(surf, face_values)
             actor = self.actors[pid]
             has = bool(np.isfinite(face_values).any())
             actor.mapper.SetScalarVisibility(has)
@@ -213,7 +246,34 @@ class Viewport(QWidget):
                 height=0.6,
                 width=0.06,
             )
-        if mode == "quality" and ws.threshold is not None:
+        self._update_highlight(values)
+
+    def _update_values(self) -> None:
+        """After a pose change: new face values of the visible parts, written in place.
+
+        Only the elements that show a face are measured (the heat-map is evaluated for what is
+        on screen); the threshold highlight, when on, uses every element.
+        """
+        ws = self.ws
+        if ws.colour_mode == "part":
+            return
+        full = ws.colour_mode == "quality" and ws.threshold is not None
+        values = self._colour_values(None if full else self._displayed_cells())
+        for pid, surf in self.surfaces.items():
+            if pid not in ws.hidden_parts:
+                self._write_values(surf, values[surf.cell_index])
+        if full:
+            self._update_highlight(values)
+
+    @staticmethod
+    def _write_values(surf: PartSurface, face_values: NDArray[np.float64]) -> None:
+        array = surf.mesh.GetCellData().GetArray("value")
+        vtk_to_numpy(array)[:] = face_values
+        array.Modified()
+
+    def _update_highlight(self, values: NDArray[np.float64]) -> None:
+        ws = self.ws
+        if ws.colour_mode == "quality" and ws.threshold is not None:
             low_bad = HEATMAP_METRICS[ws.metric][2]
             with np.errstate(invalid="ignore"):
                 bad = values < ws.threshold if low_bad else values > ws.threshold
@@ -300,51 +360,79 @@ class Viewport(QWidget):
                 mapper.AddClippingPlane(self._clip_plane)
 
     # ------------------------------------------------------------------ landmarks
-    def _update_landmarks(self) -> None:
+    def _build_landmarks(self) -> None:
+        """(Re)create the condyle-node and axis-point overlays after a setup or pick change."""
         ws = self.ws
         pl = self.plotter
-        for name in ("lateral_nodes", "medial_nodes", "axis_points", "circles", "axes_lines"):
+        for name in ("lateral_nodes", "medial_nodes", "axis_points"):
             pl.remove_actor(name, render=False)
+        self._landmark_points.clear()
         model = ws.model
         if model is None:
             return
-        coords = ws.coords
         for key, colour, name in (
             ("lateral_condyle", "#ff4040", "lateral_nodes"),
             ("medial_condyle", "#40a0ff", "medial_nodes"),
         ):
-            ids = ws.condyle_ids(key)
-            ids = [i for i in ids if model.has_nodes([i])[0]]
+            ids = [i for i in ws.condyle_ids(key) if model.has_nodes([i])[0]]
             if ids:
-                pts = coords[model.node_index(ids)]
-                pl.add_points(
-                    pts,
-                    color=colour,
-                    point_size=9,
-                    render_points_as_spheres=True,
-                    name=name,
-                    reset_camera=False,
-                    render=False,
-                    pickable=False,
-                )
-        pts = []
+                idx = model.node_index(ids)
+                self._add_landmark_points(name, colour, 9, idx)
+        sources: list[object] = []
         for key in ("lr_axis", "femur_axis", "tibia_axis"):
-            for p in ws.setup_dict.get("landmarks", {}).get(key, []) or []:
+            points = ws.setup_dict.get("landmarks", {}).get(key, []) or []
+            checked = ws.setup.axis(key) if ws.setup is not None else None
+            for which, p in enumerate(points):
                 if isinstance(p, int) and model.has_nodes([p])[0]:
-                    pts.append(coords[model.node_index(p)])
+                    sources.append(int(model.node_index(p)))
                 elif isinstance(p, list) and len(p) == 3:
-                    pts.append(np.asarray(p, dtype=float))
-        if pts:
-            pl.add_points(
-                np.array(pts),
-                color="#ffd700",
-                point_size=14,
-                render_points_as_spheres=True,
-                name="axis_points",
-                reset_camera=False,
-                render=False,
-                pickable=False,
-            )
+                    landmark = checked[which] if checked is not None else None
+                    same = landmark is not None and np.allclose(landmark.coords, p)
+                    sources.append(landmark if same else np.asarray(p, dtype=float))
+        if sources:
+            self._add_landmark_points("axis_points", "#ffd700", 14, sources)
+
+    def _add_landmark_points(self, name: str, colour: str, size: int, sources) -> None:
+        mesh = pv.PolyData(self._landmark_positions(sources))
+        self.plotter.add_points(
+            mesh,
+            color=colour,
+            point_size=size,
+            render_points_as_spheres=True,
+            name=name,
+            reset_camera=False,
+            render=False,
+            pickable=False,
+        )
+        self._landmark_points[name] = (mesh, sources)
+
+    def _landmark_positions(self, sources) -> NDArray[np.float64]:
+        coords = self.ws.coords
+        if isinstance(sources, np.ndarray):
+            return np.array(coords[sources], dtype=np.float64)
+        out = []
+        for src in sources:
+            if isinstance(src, int):
+                out.append(coords[src])
+            elif isinstance(src, np.ndarray):
+                out.append(src)
+            else:  # a coordinate landmark of the setup: follows its bone
+                out.append(src.position(coords))
+        return np.array(out, dtype=np.float64)
+
+    def _move_landmarks(self) -> None:
+        """Overwrite the overlay points in place from the current coordinates."""
+        for mesh, sources in self._landmark_points.values():
+            vtk_to_numpy(mesh.GetPoints().GetData())[:] = self._landmark_positions(sources)
+            mesh.GetPoints().Modified()
+
+    def _update_axes_overlay(self) -> None:
+        """Fitted circles and the F-E / L-R axes of the current pose."""
+        pl = self.plotter
+        for name in ("circles", "axes_lines"):
+            pl.remove_actor(name, render=False)
+        if self.ws.model is None:
+            return
         axes = self.current_axes()
         if axes is None:
             return
@@ -372,9 +460,8 @@ class Viewport(QWidget):
         lines = [pv.Line(fe.point - span * fe.direction, fe.point + span * fe.direction)]
         lr = axes.lr_axis
         lines.append(pv.Line(lr.point, lr.point - 400.0 * lr.direction))
-        merged = lines[0].merge(lines[1])
         pl.add_mesh(
-            merged,
+            lines[0].merge(lines[1]),
             color="#ffffff",
             line_width=3,
             name="axes_lines",

@@ -416,23 +416,56 @@ class Workspace(QObject):
             self._quality = self._evaluator.evaluate(self.coords)
         return self._quality
 
-    def element_values(self, metric: str) -> NDArray[np.float64]:
-        """One value per global cell (``model.blocks`` order); NaN for unmeasured types."""
-        assert self.model is not None
-        q = self.quality()
-        chunks = []
-        for etype, block in self.model.blocks.items():
+    def element_values(
+        self, metric: str, cells: NDArray[np.int64] | None = None
+    ) -> NDArray[np.float64]:
+        """One value per global cell (``model.blocks`` order); NaN for unmeasured types.
+
+        Parameters
+        ----------
+        metric : str
+            A key of :data:`HEATMAP_METRICS`.
+        cells : (k,) ndarray of int, optional
+            Measure only these global cells (the others are NaN): what the view shows.
+        """
+        assert self.model is not None and self._evaluator is not None
+        from app.scene import block_offsets
+
+        if cells is None:
+            q = self.quality()
+            rows = {e: np.arange(len(b)) for e, b in self.model.blocks.items()}
+        else:
+            offsets = block_offsets(self.model)
+            rows = {}
+            for etype, block in self.model.blocks.items():
+                start = offsets[etype]
+                sel = cells[(cells >= start) & (cells < start + len(block))] - start
+                if len(sel):
+                    rows[etype] = sel
+            q = (
+                self._quality
+                if self._quality is not None
+                else self._evaluator.evaluate(self.coords, rows)
+            )
+        out = np.full(self.model.n_elements, np.nan)
+        offsets = block_offsets(self.model)
+        for etype, sel in rows.items():
             if etype not in q:
-                chunks.append(np.full(len(block), np.nan))
                 continue
-            if metric == "volume_change":
-                v0 = self._initial_quality[etype].volume
-                v = q[etype].volume
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    chunks.append(np.where(v0 != 0, 100.0 * (v - v0) / np.abs(v0), np.nan))
+            part = q[etype]
+            if cells is not None and self._quality is not None:
+                values_rows = sel
             else:
-                chunks.append(np.asarray(q[etype].metric(HEATMAP_METRICS[metric][1]), float))
-        return np.concatenate(chunks) if chunks else np.zeros(0)
+                values_rows = np.arange(len(part)) if cells is not None else sel
+            if metric == "volume_change":
+                v0 = self._initial_quality[etype].volume[sel]
+                v = part.volume[values_rows]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    vals = np.where(v0 != 0, 100.0 * (v - v0) / np.abs(v0), np.nan)
+            else:
+                vals = np.asarray(part.metric(HEATMAP_METRICS[metric][1]), float)[values_rows]
+            out[offsets[etype] + sel] = vals
+        return out
 
     def worst_elements(self, metric: str, count: int = 20) -> list[tuple[int, int, str, float]]:
         """The ``count`` worst elements: ``(global cell, element id, part title, value)``."""

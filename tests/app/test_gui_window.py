@@ -86,12 +86,12 @@ def test_slider_reposes_live_points_in_place(demo_window, qtbot):
     ws, vp = demo_window.ws, demo_window.viewport
     meshes = {pid: s.mesh for pid, s in vp.surfaces.items()}
     buffers = {pid: vp._points[pid] for pid in vp.surfaces}
-    renders = vp.renders
+    renders, flushes = vp.renders, vp.flushes
     slider = demo_window.flexion_panel.slider
     for value in (300, 600, 900):
         slider.setValue(value)
     qtbot.waitUntil(lambda: vp.renders > renders, timeout=5000)
-    assert vp.renders == renders + 1  # three slider events, one batched redraw
+    assert vp.flushes == flushes + 1  # three slider events, one batched update
     assert ws.flexion == 90.0
     np.testing.assert_allclose(ws.coords, ws.poser.pose(90.0))
     assert measure_flexion(ws.coords, ws.setup) == pytest.approx(90.0, abs=0.2)
@@ -190,6 +190,11 @@ def test_heatmaps_threshold_worst_list_and_cutaway(demo_window, qtbot):
         vp.flush()
         values = ws.element_values(key)
         assert vp._scalar_title == label
+        shown = vp._displayed_cells()
+        ws._quality = None  # the per-frame path measures only the elements on screen
+        partial = ws.element_values(key, shown)
+        np.testing.assert_array_equal(partial[shown], values[shown])
+        assert np.isnan(np.delete(partial, shown)).all()
         for pid, surf in vp.surfaces.items():
             np.testing.assert_array_equal(surf.mesh.cell_data["value"], values[surf.cell_index])
             has = bool(np.isfinite(values[surf.cell_index]).any())
