@@ -44,14 +44,14 @@ RING_BLOCKS = (("inner", 1, 12.0), ("mid", 1, 20.0), ("outer", 2, 18.0))
 SLAB_BLOCKS = (
     ("calf", 0, -400.0, -140.0, 0.0),  # count from the shaft aspect rule
     ("tibmeta", 2, -140.0, -55.0, 0.85),
-    ("tub", 1, -55.0, -40.0, 0.5),
+    ("tub", 2, -55.0, -40.0, 0.5),
     ("tibcond", 2, -40.0, -24.0, 0.5),
     ("men", 1, -24.0, -19.0, 1.0),
     ("void", 1, -19.0, -14.0, 1e9),  # always one slab
-    ("notch1", 2, -14.0, 2.0, 0.45),
+    ("notch1", 3, -14.0, 2.0, 0.45),
     ("notch2", 1, 2.0, 6.0, 0.45),
-    ("cond", 1, 6.0, 16.0, 0.45),
-    ("pat", 2, 16.0, 45.0, 0.55),
+    ("cond", 2, 6.0, 16.0, 0.45),
+    ("pat", 3, 16.0, 45.0, 0.55),
     ("femmeta", 3, 45.0, 90.0, 0.8),
     ("thigh", 0, 90.0, 400.0, 0.0),
 )
@@ -187,6 +187,8 @@ def make_layout(factor: float) -> Layout:
         elif rel == 0.0:
             counts.append(max(2, int(np.ceil(length / shaft_len))))
         else:
-            counts.append(max(minimum, int(np.ceil(length / (rel * knee_size) - 0.25))))
+            by_size = int(np.ceil(length / (rel * knee_size) - 0.25))
+            by_aspect = int(np.ceil(length / shaft_len))
+            counts.append(max(minimum, by_size, by_aspect))
     slabs = Blocks(tuple(b[0] for b in SLAB_BLOCKS), tuple(counts))
     return Layout(factor, rows, cols, rings, slabs, tuple((b[2], b[3]) for b in SLAB_BLOCKS))
