@@ -46,6 +46,13 @@ class Viewport(QWidget):
         # software GL (Mesa llvmpipe under Xvfb) renders 2-3x faster without multisampling
         self.plotter.ren_win.SetMultiSamples(0)
         self.plotter.ren_win.AddObserver("EndEvent", self._count_render)
+        # landmarks, circles and axes live in a second layer drawn over the bones
+        self._overlay = vtk.vtkRenderer()
+        self._overlay.SetLayer(1)
+        self._overlay.InteractiveOff()
+        self.plotter.ren_win.SetNumberOfLayers(2)
+        self.plotter.ren_win.AddRenderer(self._overlay)
+        self.overlay_actors: dict[str, vtk.vtkActor] = {}
         layout.addWidget(self.plotter)
         self.plotter.add_axes()
         self.surfaces: dict[int, PartSurface] = {}
@@ -97,6 +104,7 @@ class Viewport(QWidget):
         if not dirty or self.ws.model is None or not self.actors:
             return
         self.flushes += 1
+        self._overlay.SetActiveCamera(self.plotter.renderer.GetActiveCamera())
         if "points" in dirty:
             self._update_points()
             if not dirty & {"colour", "threshold", "visibility"}:
@@ -217,8 +225,9 @@ class Viewport(QWidget):
             title = "Fibre stretch"
             cmap = "coolwarm"
             finite = values[np.isfinite(values)]
-            half = max(0.02, float(np.max(np.abs(finite - 1.0)))) if len(finite) else 0.1
-            clim = (1.0 - half, 1.0 + half)
+            spread = np.abs(np.percentile(finite, [2, 98]) - 1.0) if len(finite) else [0.1]
+            half = max(0.02, float(np.max(spread)))
+            clim = (max(0.0, 1.0 - half), 1.0 + half)
         lut = pv.LookupTable(cmap=cmap)
         lut.scalar_range = clim
         lut.nan_color = "#b0b0b0"
@@ -360,12 +369,42 @@ class Viewport(QWidget):
                 mapper.AddClippingPlane(self._clip_plane)
 
     # ------------------------------------------------------------------ landmarks
+    def _set_overlay(
+        self,
+        name: str,
+        mesh: pv.PolyData | None,
+        colour: str = "white",
+        point_size: float = 0.0,
+        line_width: float = 0.0,
+    ) -> None:
+        """Put ``mesh`` in the overlay layer under ``name`` (None removes it)."""
+        old = self.overlay_actors.pop(name, None)
+        if old is not None:
+            self._overlay.RemoveActor(old)
+        if mesh is None:
+            return
+        mapper = vtk.vtkPolyDataMapper()
+        mapper.SetInputData(mesh)
+        mapper.ScalarVisibilityOff()
+        actor = vtk.vtkActor()
+        actor.SetMapper(mapper)
+        actor.PickableOff()
+        prop = actor.GetProperty()
+        prop.SetColor(pv.Color(colour).float_rgb)
+        if point_size:
+            prop.SetPointSize(point_size)
+            prop.SetRenderPointsAsSpheres(True)
+        if line_width:
+            prop.SetLineWidth(line_width)
+            prop.LightingOff()
+        self._overlay.AddActor(actor)
+        self.overlay_actors[name] = actor
+
     def _build_landmarks(self) -> None:
         """(Re)create the condyle-node and axis-point overlays after a setup or pick change."""
         ws = self.ws
-        pl = self.plotter
         for name in ("lateral_nodes", "medial_nodes", "axis_points"):
-            pl.remove_actor(name, render=False)
+            self._set_overlay(name, None)
         self._landmark_points.clear()
         model = ws.model
         if model is None:
@@ -428,9 +467,8 @@ class Viewport(QWidget):
 
     def _update_axes_overlay(self) -> None:
         """Fitted circles and the F-E / L-R axes of the current pose."""
-        pl = self.plotter
         for name in ("circles", "axes_lines"):
-            pl.remove_actor(name, render=False)
+            self._set_overlay(name, None)
         if self.ws.model is None:
             return
         axes = self.current_axes()
@@ -445,30 +483,18 @@ class Viewport(QWidget):
             ring = np.asarray(centre)[None] + fit.radius * (
                 np.cos(t)[:, None] * axes.anterior[None] + np.sin(t)[:, None] * axes.superior[None]
             )
-            circles.append(pv.lines_from_points(ring))
-        pl.add_mesh(
-            circles[0].merge(circles[1]),
-            color="#00ff80",
-            line_width=4,
-            name="circles",
-            reset_camera=False,
-            render=False,
-            pickable=False,
-        )
+            circles.append(ring)
+        merged = _polylines(circles)
+        self._set_overlay("circles", merged, "#00ff80", line_width=3)
         span = 1.6 * float(np.linalg.norm(axes.lateral_center - axes.medial_center)) + 20.0
         fe = axes.fe_axis
-        lines = [pv.Line(fe.point - span * fe.direction, fe.point + span * fe.direction)]
         lr = axes.lr_axis
-        lines.append(pv.Line(lr.point, lr.point - 400.0 * lr.direction))
-        pl.add_mesh(
-            lines[0].merge(lines[1]),
-            color="#ffffff",
-            line_width=3,
-            name="axes_lines",
-            reset_camera=False,
-            render=False,
-            pickable=False,
-        )
+        lines = [
+            np.array([fe.point - span * fe.direction, fe.point + span * fe.direction]),
+            np.array([lr.point, lr.point - 400.0 * lr.direction]),
+        ]
+        merged = _polylines(lines)
+        self._set_overlay("axes_lines", merged, "#ffffff", line_width=2)
 
     def current_axes(self):
         """Joint axes of the current pose (None without a valid setup)."""
@@ -506,6 +532,7 @@ class Viewport(QWidget):
         cam.focal_point = centre
         cam.position = centre + direction * extent * 1.4
         cam.up = frame["superior"]
+        cam.view_angle = 30.0  # undo any zoom
         self.plotter.reset_camera_clipping_range()
         self.render()
 
@@ -666,6 +693,16 @@ class _PickFilter(QObject):
             self.vp.apply_pick(ids, remove)
             return True
         return False
+
+
+def _polylines(chains: list[NDArray[np.float64]]) -> pv.PolyData:
+    """One PolyData holding each (k, 3) point chain as a polyline."""
+    points = np.concatenate(chains)
+    cells, start = [], 0
+    for chain in chains:
+        cells.append(np.r_[len(chain), np.arange(start, start + len(chain))])
+        start += len(chain)
+    return pv.PolyData(points, lines=np.concatenate(cells))
 
 
 def _quality_clim(metric: str, values: NDArray[np.float64]) -> tuple[float, float]:

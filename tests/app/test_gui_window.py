@@ -160,7 +160,7 @@ def test_pick_a_condyle_set_by_box_and_click(demo_window, qtbot):
     assert ws.setup_problem is None
     assert ws.axes.lateral_fit.radius == pytest.approx(radius0, rel=1e-9)
     assert "R =" in panel.labels["lateral_fit"].text()
-    assert vp.plotter.actors.get("circles") is not None
+    assert vp.overlay_actors.get("circles") is not None
     # Ctrl+click removes the node under the cursor; a plain click adds it back
     node = ws.model.node_index(original[len(original) // 2])
     where = widget_point(vp, ws.coords[node])

@@ -1,0 +1,127 @@
+"""Write the README / user-guide screenshots of the real window (needs a display: xvfb-run).
+
+``xvfb-run -a -s "-screen 0 1600x1000x24" python scripts/screenshots.py`` opens the main window on
+the default demo leg and saves:
+
+- docs/images/gui-flexion90-jacobian.png: the knee at 90° with the Jacobian heat-map (skin
+  hidden, lateral half cut away) and the Quality panel;
+- docs/images/gui-landmarks.png: the femur with the picked condyle nodes, the fitted circles,
+  the F-E and L-R axes and the Landmarks panel;
+- docs/images/gui-ligaments.png: ligament stretch at 90° and the length-vs-flexion plot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def _pump(app, seconds: float = 0.3) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        app.processEvents()
+        time.sleep(0.01)
+
+
+def _wait(app, window) -> None:
+    start = time.monotonic()
+    while window.ws.poser is None or window.ws.tasks.busy:
+        app.processEvents()
+        time.sleep(0.01)
+        if time.monotonic() - start > 300:
+            raise RuntimeError(f"window not ready: {window.last_error}")
+    _pump(app)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--outdir", type=Path, default=ROOT / "docs" / "images")
+    parser.add_argument("--elements", type=int, default=None)
+    args = parser.parse_args(argv)
+    os.environ.setdefault("QT_API", "pyside6")
+    from PySide6.QtCore import QSettings
+    from PySide6.QtWidgets import QApplication
+
+    from app.demo import DEFAULT_DEMO_ELEMENTS, demo_files
+    from app.main_window import MainWindow
+    from app.qt_compat import protect_singletons
+
+    protect_singletons()
+    tmp = Path(tempfile.mkdtemp(prefix="kneegui-shots-"))
+    QSettings.setPath(QSettings.Format.IniFormat, QSettings.Scope.UserScope, str(tmp))
+    app = QApplication.instance() or QApplication([])
+    deck, setup = demo_files(args.elements or DEFAULT_DEMO_ELEMENTS, cache_dir=tmp / "cache")
+    window = MainWindow()
+    window.resize(1500, 920)
+    window.show()
+    window.open_deck(deck, setup)
+    _wait(app, window)
+    ws, vp = window.ws, window.viewport
+    args.outdir.mkdir(parents=True, exist_ok=True)
+    roles = ws.setup_dict["roles"]
+
+    # 1. landmarks: femur (and tibia) only, lateral view, fitted circles and axes
+    window.docks["Landmarks"].raise_()
+    for pid in vp.actors:
+        ws.set_part_visible(pid, pid in roles["femur"] or pid in roles["tibia"])
+    ws.set_pick_target("lateral_condyle")
+    vp.flush()
+    vp.camera_preset("lateral")
+    vp.plotter.camera.zoom(3.0)
+    _pump(app)
+    out1 = window.save_screenshot(args.outdir / "gui-landmarks.png")
+    ws.set_pick_target("")
+
+    # 2. 90 degrees, Jacobian heat-map, skin hidden, lateral half cut away
+    window.flexion_panel.slider.setValue(900)
+    skin = set(roles.get("skin", []))
+    for pid in vp.actors:
+        ws.set_part_visible(pid, pid not in skin)
+    window.docks["Quality"].raise_()
+    qp = window.quality_panel
+    qp.mode.setCurrentIndex(qp.mode.findData("quality"))
+    qp.metric.setCurrentIndex(qp.metric.findData("jacobian"))
+    qp.clip_side.setCurrentText("lateral")
+    qp.clip_on.setChecked(True)
+    vp.flush()
+    vp.camera_preset("lateral")
+    vp.plotter.camera.zoom(2.0)
+    qp.refresh()
+    _pump(app, 0.5)
+    out2 = window.save_screenshot(args.outdir / "gui-flexion90-jacobian.png")
+
+    # 3. ligament stretch at 90 degrees with the length curves
+    qp.clip_on.setChecked(False)
+    keep = (
+        set(roles["femur"])
+        | set(roles["tibia"])
+        | set(roles["fibula"])
+        | set(roles["ligament"])
+        | set(roles["patella"])
+    )
+    for pid in vp.actors:
+        ws.set_part_visible(pid, pid in keep)
+    window.docks["Ligaments"].raise_()
+    ws.compute_ligament_curve()
+    _wait(app, window)
+    window.ligament_panel.show_stretch.click()
+    vp.flush()
+    vp.camera_preset("medial")
+    vp.plotter.camera.zoom(2.5)
+    _pump(app, 0.5)
+    out3 = window.save_screenshot(args.outdir / "gui-ligaments.png")
+    window.close()
+    for out in (out1, out2, out3):
+        print(out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
