@@ -85,14 +85,16 @@ def test_degraded_elements_needs_to_be_worse_than_initial(block_model):
 
 
 # ---------------------------------------------------------------------- guarantees
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, block_model):
+@pytest.mark.parametrize(
+    ("seed", "optimizer"), [(0, "batched"), (1, "batched"), (2, "scipy"), (3, "scipy")]
+)
+def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, optimizer, block_model):
     model = block_model(7, 7, 7, bone_layers=1)
     posed = _jiggle(model, seed)
     q_before = compute_quality(posed.coords, posed.blocks)
     free = smoothing_free_nodes(posed, [2], [1], degraded_elements(q_before), rings=1)
     coords_before = posed.coords.copy()
-    new, report = smooth_mesh(posed, None, free)
+    new, report = smooth_mesh(posed, None, free, optimizer=optimizer)
     assert np.array_equal(posed.coords, coords_before)  # input untouched
     assert np.array_equal(new[~free], posed.coords[~free])  # fixed nodes exactly in place
     q_after = compute_quality(new, posed.blocks)
@@ -108,11 +110,12 @@ def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, bloc
     assert after <= max(before, 5.0) + 1e-12
 
 
-def test_smoothing_is_deterministic(block_model):
+@pytest.mark.parametrize("optimizer", ["batched", "scipy"])
+def test_smoothing_is_deterministic(optimizer, block_model):
     model = block_model(8, 8, 8)
     posed = _swirl(model, 2.0, 2.5)
-    a, ra = smooth_posed_model(posed, [2], [1], initial=model)
-    b, rb = smooth_posed_model(posed, [2], [1], initial=model)
+    a, ra = smooth_posed_model(posed, [2], [1], initial=model, optimizer=optimizer)
+    b, rb = smooth_posed_model(posed, [2], [1], initial=model, optimizer=optimizer)
     assert np.array_equal(a.coords, b.coords)
     assert {k: v for k, v in ra.to_dict().items() if k != "seconds"} == {
         k: v for k, v in rb.to_dict().items() if k != "seconds"
@@ -138,7 +141,8 @@ def test_smoothing_untangles_a_twisted_core_and_keeps_topology(block_model):
     assert np.array_equal(smoothed.coords[skin], posed.coords[skin])
 
 
-def test_stage_two_alone_improves_the_worst_element(block_model):
+@pytest.mark.parametrize("optimizer", ["batched", "scipy"])
+def test_stage_two_alone_improves_the_worst_element(optimizer, block_model):
     model = block_model(5, 5, 5, skin=False)
     c = model.coords.copy()
     node = np.flatnonzero(np.all(c == (2, 2, 3), axis=1))[0]
@@ -147,7 +151,7 @@ def test_stage_two_alone_improves_the_worst_element(block_model):
     free = np.zeros(model.n_nodes, dtype=bool)
     free[node] = True
     q0 = compute_quality(posed.coords, posed.blocks)
-    new, report = smooth_mesh(posed, None, free, max_sweeps=0)
+    new, report = smooth_mesh(posed, None, free, max_sweeps=0, optimizer=optimizer)
     q1 = compute_quality(new, posed.blocks)
     assert report.stage1_sweeps == 0 and report.stage2_improved >= 1
     assert q1.worst_jacobian() > q0.worst_jacobian() + 0.3
