@@ -333,3 +333,32 @@ def test_smoother_measure_equals_reported_corner_jacobian(etype):
     np.testing.assert_allclose(jac, reported[etype].jacobian_corner, atol=1e-12)
     assert np.all((scaled > 0) == (jac > 0))
     assert np.any(jac <= 0) or etype == "tet4"
+
+
+@pytest.mark.parametrize("kind", ["hex8", "wedge6", "tet4"])
+def test_batched_local_problem_is_the_exact_affine_map(kind, block_model):
+    """d0 + G . delta equals the corner determinants recomputed with the node moved."""
+    from kneegui.smoothing.batched import build_problems, objective
+    from kneegui.smoothing.smoother import CORNER_TRIPLES, _corner_determinants
+
+    model = block_model(3, 3, 3, skin=False)
+    if kind != "hex8":
+        model = _split_model(block_model(3, 3, 3), kind)
+    rng = np.random.default_rng(4)
+    coords = model.coords + rng.uniform(-0.2, 0.2, model.coords.shape)
+    node = int(np.flatnonzero(np.all(model.coords == (1, 1, 2), axis=1))[0])
+    block = model.blocks[kind]
+    conn = block.conn[np.any(block.conn == node, axis=1)]
+    n_el = len(conn)
+    problem = build_problems(
+        np.array([node]), coords, [(kind, np.zeros(n_el, int), np.arange(n_el), conn)],
+        CORNER_TRIPLES, np.eye(3)[None], np.array([0.0]), np.array([0.0]), np.array([5.0]),
+        np.array([n_el]),
+    )  # fmt: skip
+    delta = np.array([0.13, -0.07, 0.05])
+    moved = coords.copy()
+    moved[node] += delta
+    exact = _corner_determinants(moved[conn], kind)
+    predicted = problem.d0[0] + problem.grad[0] @ delta
+    np.testing.assert_allclose(predicted[:, : exact.shape[1]], exact, rtol=1e-10, atol=1e-12)
+    assert objective(problem, np.zeros((1, 2, 3))).shape == (1, 2)
