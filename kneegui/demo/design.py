@@ -45,7 +45,7 @@ class DemoDesign:
     initial_flexion_deg : float
         Angle between the femoral and tibial anatomical axes in the sagittal plane.
     patellar_flexion_ratio : float
-        Share of the knee flexion the patella follows in the initial pose.
+        Share of the knee flexion given to the patella in the harmonic field that bends the skin.
     """
 
     lateral_radius: float = 20.5

@@ -7,11 +7,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from kneegui.demo import grid as g
 from kneegui.demo.design import DemoDesign
 from kneegui.demo.layout import Layout, make_layout
+from kneegui.demo.sliding import detach_soft_tissue
 from kneegui.errors import KneeguiError
 from kneegui.model import ElementBlock, Model, NodeSet, Part
 
@@ -255,10 +255,31 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
     order = np.argsort(quad_pid, kind="stable")
     quad_conn, quad_pid = quad_conn[order], quad_pid[order]
 
+    # soft tissue slides on the bones around the joint (see kneegui.demo.sliding)
+    grid_coords = grid.coords
+    role_pids = {r: [s.pid for s in PARTS if s.role == r] for r in {s.role for s in PARTS}}
+    for bones, soft in (
+        (
+            role_pids["femur"],
+            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["meniscus"],
+        ),
+        (
+            role_pids["tibia"] + role_pids["fibula"],
+            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"],
+        ),
+    ):
+        grid_coords, (hex_conn, quad_conn) = detach_soft_tissue(
+            grid_coords,
+            [(hex_conn, hex_pid), (quad_conn, quad_pid)],
+            bones,
+            soft,
+            attached_pids=role_pids["ligament"] + role_pids["tendon"],
+        )
+
     used = np.unique(np.concatenate([hex_conn.ravel(), quad_conn.ravel()]))
-    remap = np.full(len(grid.coords), -1, dtype=np.int64)
+    remap = np.full(len(grid_coords), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    coords = grid.coords[used].copy()
+    coords = grid_coords[used].copy()
     hex_conn = remap[hex_conn]
     quad_conn = remap[quad_conn]
     if side == "left":
@@ -369,8 +390,3 @@ def write_demo(
     setup = dict(leg.setup, model=DECK_NAME)
     setup_path.write_text(setup_to_json(setup), encoding="utf-8")
     return deck, setup_path
-
-
-def node_ids_of(leg: DemoLeg, indices: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Node ids of model node indices (convenience for tests and scripts)."""
-    return leg.model.node_ids[indices]

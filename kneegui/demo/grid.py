@@ -6,10 +6,13 @@ all the lattice hexahedra ("slots"); a label says what each one is (a bone, fles
 a meniscus, or void: not an element). Shells are the faces between labels where anatomy puts
 them (cortical bone, skin, capsule, patellar tendon).
 
-Positions are first built in the straight pose (femur and tibia both along z), with the tibia
-side designed in the tibia's own frame; then every node is rotated about the flexion-extension
-axis (the y axis) by ``w * flexion``, where ``w`` is 0 on the femur, 1 on the tibia, fibula and
-menisci, a constant on the patella and harmonic (discrete Laplace) in the soft tissue between.
+Positions: the core (bone column) is built in the straight pose, the femur side in the femur
+frame and the tibia side in the tibia's own frame, then each rigid piece is rotated about the
+flexion-extension axis (the y axis) by ``w * flexion`` with ``w`` = 0 above the joint gap and 1
+below it. The meniscus top is placed under the (unrotated) femur. The skin is designed around the
+straight limb and bent with a harmonic weight field (discrete Laplace on the lattice: 0 on the
+femur and the thigh, 1 on the tibia, fibula and calf, the patellar share on the patella). The
+rings are straight segments from the posed bone outline to the posed skin.
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ import pytest
 
 from kneegui.demo import PARTS, generate_demo_leg, write_demo
 from kneegui.demo.grid import HEX_FACES, rotate_about_y
+from kneegui.demo.sliding import SLIDING_RADIUS_MM
 from kneegui.errors import KneeguiError
 from kneegui.geometry.axes import compute_joint_axes, measure_flexion
 from kneegui.geometry.circle_fit import fit_circle_2d
@@ -54,6 +55,8 @@ def test_size_option_scales_the_same_anatomy():
     for leg in (small, large):
         counts = leg.model.element_counts()
         assert set(counts) == {s.pid for s in PARTS}
+    # the coarsest model is below the quality floor (docs/demo-leg.md) but never inverted
+    assert compute_quality(small.model.coords, small.model.blocks).n_inverted == 0
 
 
 def test_every_part_is_present_titled_and_has_its_element_kind(leg):
@@ -89,10 +92,27 @@ def _hex_boundary_faces(model):
     return faces[once], block.part_ids[owner[once]], key[once]
 
 
-def test_no_coincident_nodes_and_every_node_is_used(leg):
+def test_coincident_nodes_only_at_the_sliding_interface_and_every_node_is_used(leg):
+    """Coincident nodes exist only where soft tissue slides on a bone near the joint (one bone
+    node and one soft-tissue node each, within the sliding radius), as at a contact interface."""
     m = leg.model
     rounded = np.round(m.coords, 6)
-    assert len(np.unique(rounded, axis=0)) == m.n_nodes
+    _, inverse, counts = np.unique(rounded, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    shared = np.flatnonzero(counts[inverse] > 1)
+    assert counts.max() <= 2
+    bone = set(np.concatenate([_role_nodes(leg, r) for r in ("femur", "tibia", "fibula")]).tolist())
+    soft = set(
+        np.concatenate(
+            [_role_nodes(leg, r) for r in ("flesh", "capsule", "skin", "meniscus")]
+        ).tolist()
+    )
+    assert len(shared) > 0
+    for group in np.unique(inverse[shared]):
+        pair = np.flatnonzero(inverse == group).tolist()
+        assert sum(p in bone for p in pair) == 1 and sum(p in soft for p in pair) >= 1
+    radius = np.hypot(m.coords[shared, 0], m.coords[shared, 2])
+    assert radius.max() < SLIDING_RADIUS_MM
     used = np.unique(np.concatenate([b.conn.ravel() for b in m.blocks.values()]))
     assert len(used) == m.n_nodes
 
@@ -126,6 +146,19 @@ def test_no_free_hex_face_inside_the_flesh(leg):
     flesh = np.isin(pids, _pids(leg, "flesh"))
     shell_keys = {tuple(q) for q in np.sort(m.blocks["quad4"].conn, axis=1).tolist()}
     covered = np.array([tuple(k) in shell_keys for k in key[flesh].tolist()])
+
+    # at the sliding interface a flesh face lies on a cortical shell with its own coincident
+    # nodes: covered by the shell's position rather than its node ids
+    def where(conn):
+        return {tuple(sorted(map(tuple, np.round(m.coords[q], 6).tolist()))) for q in conn}
+
+    shell_places = where(m.blocks["quad4"].conn)
+    covered |= np.array(
+        [
+            tuple(sorted(map(tuple, np.round(m.coords[f], 6).tolist()))) in shell_places
+            for f in faces[flesh]
+        ]
+    )
     xyz = m.coords[faces[flesh]]  # (n, 4, 3)
     top = np.all(np.abs(xyz[..., 2] - leg.design.thigh_top_z) < 1e-6, axis=1)
     calf_frame = rotate_about_y(xyz, -leg.design.flexion_rad)
