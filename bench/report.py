@@ -175,15 +175,28 @@ def headline(results: dict) -> list[str]:
             f"(`{base.get('default_method')}`) {q(raw)}; with smoothing {q(smoothed)}; "
             f"rigid segment rotation {q(rigid)}; RBF morph {q(rbf)}."
         )
+    raw90, smooth90 = default_rows(results, 90.0)
+    rigid90, rbf90 = baseline_row(results, 90.0, "rigid"), baseline_row(results, 90.0, "rbf")
+    if raw90 and rigid90 and rbf90:
+        lines.append(
+            f"- Same run, 90°: kneegui's `pose()` took {fmt_seconds(raw90['seconds'])}, "
+            f"{rbf90['seconds'] / raw90['seconds']:.0f}x less than the RBF morph "
+            f"({fmt_seconds(rbf90['seconds'])}) and {raw90['seconds'] / rigid90['seconds']:.0f}x "
+            f"more than the rigid rotation ({fmt_seconds(rigid90['seconds'])})."
+        )
     paper_time = next(
         (r for r in load_paper_table() if r["metric"] == "time_s" and r["paper"]), None
     )
-    _, smooth90 = default_rows(results, 90.0)
-    if paper_time and smooth90:
+    if paper_time and raw90:
+        pose_and_smooth = (
+            f"; pose + smoothing {fmt_seconds(smooth90['seconds'])}" if smooth90 else ""
+        )
         lines.append(
-            f"- The paper: {float(paper_time['paper']):g} s per pose including smoothing, on its "
-            f"own model and machine (Core2 Q6600); kneegui here, pose + smoothing at 90°: "
-            f"{fmt_seconds(smooth90['seconds'])} (different model and machine, so no ratio)."
+            f"- The paper: {float(paper_time['paper']):g} s per pose (bones, skin contours and "
+            f"soft-tissue mapping) for its ≈ 19,000-solid model on a Core2 Q6600. kneegui here, at "
+            f"90° on the {base.get('solids', 0):,}-solid demo: `pose()` "
+            f"{fmt_seconds(raw90['seconds'])}{pose_and_smooth} (different model and machine, so "
+            "no ratio is given)."
         )
     lines.append("")
     return lines
@@ -280,6 +293,24 @@ def scaling_table(results: dict) -> list[str]:
     gui = results.get("gui", {})
     if gui.get("skipped"):
         lines += ["", f"GUI frame time: skipped ({gui['skipped']})."]
+    elif gui.get("results"):
+        parts = gui["results"].get("part_colours", {})
+        heat = gui["results"].get("jacobian_heatmap", {})
+        rate = parts.get("updates_per_s", 0.0)
+        target = gui.get("target_updates_per_s")
+        lines += [
+            "",
+            f"GUI (bench/gui_bench.py, {gui['model']['elements']:,}-element demo, "
+            f"{parts.get('updates')} slider steps, software OpenGL under Xvfb): median frame "
+            f"{parts.get('median_frame_ms', float('nan')):.1f} ms in part colours, "
+            f"{heat.get('median_frame_ms', float('nan')):.1f} ms with the Jacobian heat map "
+            f"(quality recomputed each step); {rate:.1f} updates/s"
+            + (
+                f" (GUI target ≥ {target:g}: {'met' if rate >= target else '**missed**'})."
+                if target
+                else "."
+            ),
+        ]
     lines.append("")
     return lines
 
@@ -396,7 +427,8 @@ METHOD_NOTES = """## How it is measured
   are made within one run on one machine; the paper's figures are printed beside ours,
   labelled, never divided into ours.
 - **Stages.** precompute = constructing `Repositioner(model, setup)` with the default
-  `RepositionOptions()`; `pose()` = one call at a new angle (0.5° slider steps after a warm-up);
+  `RepositionOptions()` (at least 3 runs up to paper scale, 1 above); `pose()` = one call at a
+  new angle (0.5° slider steps after a warm-up);
   full pose with quality = `pose_model(..., smooth=False)` (initial and posed quality, volume
   change, gate, report); quality alone = `compute_quality` of the posed coordinates; deck read =
   `read_deck` of a deck written by `write_model`; deck write = `write_deck` of the read model
@@ -412,7 +444,9 @@ METHOD_NOTES = """## How it is measured
   with `kernel="thin_plate_spline"` (degree-1 polynomial, no smoothing) fitted to the
   displacements of a farthest-point subsample of each bone's surface nodes (1,000 in total,
   shared among femur, tibia + fibula and patella in proportion to their surface-node counts, at
-  least 50 each), evaluated at every soft-tissue node; bone nodes move rigidly.
+  least 50 each), evaluated at every soft-tissue node; bone nodes move rigidly. Its time per
+  pose includes fitting the interpolant (the displacements change with the angle); choosing the
+  control points is the one-off precompute.
 - **Quality** (docs/quality-table.md, QUALITY.md): corner Jacobian ratio (≤ 0 = inverted),
   aspect ratio, warpage and skew as crash pre-processors define them, over every solid and shell;
   "> initial worst aspect" counts elements whose aspect ratio exceeds the initial model's worst
@@ -517,10 +551,21 @@ def plot_inverted(results: dict, path: Path) -> Path | None:
     if not base.get("rows"):
         return None
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
+    methods = list(dict.fromkeys(r["method"] for r in base["rows"]))
+    colours = {m: f"C{i}" for i, m in enumerate(methods)}
     for label in dict.fromkeys(r["label"] for r in base["rows"]):
-        pts = [(r["angle"], r["inverted"]) for r in base["rows"] if r["label"] == label]
-        xs, ys = zip(*pts, strict=True)
-        ax.plot(xs, ys, marker="o", label=label, ls="--" if "smoothing" in label else "-")
+        rows = [r for r in base["rows"] if r["label"] == label]
+        xs = [r["angle"] for r in rows]
+        ys = [r["inverted"] for r in rows]
+        smoothed = bool(rows[0].get("smoothed"))
+        ax.plot(
+            xs,
+            ys,
+            marker="s" if smoothed else "o",
+            label=label,
+            ls="--" if smoothed else "-",
+            color=colours[rows[0]["method"]],
+        )
     ax.set_xlabel("target flexion (deg)")
     ax.set_ylabel("inverted elements")
     ax.set_yscale("symlog", linthresh=1)
