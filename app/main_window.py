@@ -326,8 +326,7 @@ class MainWindow(QMainWindow):
 
     def closeEvent(self, event) -> None:
         self.save_layout()
-        self.ws.tasks.cancel()
-        self.ws.tasks.wait(5000)
+        self.ws.shutdown(5000)
         self.viewport.plotter.close()
         super().closeEvent(event)
 

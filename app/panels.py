@@ -300,7 +300,9 @@ class FlexionPanel(QWidget):
         layout.addWidget(self.spin)
         self.info = QLabel("")
         layout.addWidget(self.info)
-        self.slider.valueChanged.connect(lambda v: self.ws.set_flexion(v / SLIDER_STEPS_PER_DEGREE))
+        self.slider.valueChanged.connect(
+            lambda v: self.ws.request_flexion(v / SLIDER_STEPS_PER_DEGREE)
+        )
         self.spin.valueChanged.connect(self.ws.set_flexion)
         ws.coords_changed.connect(self.sync)
         ws.poser_changed.connect(self.sync)
@@ -313,7 +315,9 @@ class FlexionPanel(QWidget):
         self.slider.setEnabled(enabled)
         self.spin.setEnabled(enabled)
         with _blocked(self.slider), _blocked(self.spin):
-            self.slider.setValue(round(ws.flexion * SLIDER_STEPS_PER_DEGREE))
+            # while a drag is being followed, the slider is ahead of the pose: leave it
+            if not (ws.pose_pending or self.slider.isSliderDown()):
+                self.slider.setValue(round(ws.flexion * SLIDER_STEPS_PER_DEGREE))
             self.spin.setValue(ws.flexion)
         if ws.poser is None:
             self.info.setText("preparing…" if ws.model is not None else "")

@@ -67,6 +67,7 @@ class Viewport(QWidget):
         self._dirty: set[str] = set()
         self.renders = 0  # VTK renders done (counted by the render window)
         self.flushes = 0  # batched updates applied
+        self.pose_frames = 0  # batched updates that moved the points
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
         self._timer.setInterval(0)
@@ -106,6 +107,7 @@ class Viewport(QWidget):
         self.flushes += 1
         self._overlay.SetActiveCamera(self.plotter.renderer.GetActiveCamera())
         if "points" in dirty:
+            self.pose_frames += 1
             self._update_points()
             if not dirty & {"colour", "threshold", "visibility"}:
                 self._update_values()

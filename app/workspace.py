@@ -60,6 +60,7 @@ class Workspace(QObject):
     ligaments_changed : ligament length curves were (re)computed
     error(object) : a background task failed (the exception)
     status(str) : a one-line message for the status bar
+    live_idle : the last requested slider pose is shown
     """
 
     model_changed = Signal()
@@ -71,6 +72,7 @@ class Workspace(QObject):
     ligaments_changed = Signal()
     error = Signal(object)
     status = Signal(str)
+    live_idle = Signal()
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -106,6 +108,7 @@ class Workspace(QObject):
         self._redo: list[dict[str, Any]] = []
         self._poser_stale = False
         self.tasks.finished.connect(lambda _name: QTimer.singleShot(0, self.on_task_finished))
+        self._live = LivePoser(self)
 
     # ------------------------------------------------------------------ loading
     def load(
@@ -383,15 +386,38 @@ class Workspace(QObject):
 
     # ------------------------------------------------------------------ pose
     def set_flexion(self, degrees: float, force: bool = False) -> None:
-        """Re-pose the model at ``degrees`` through the precomputed poser."""
+        """Re-pose the model at ``degrees`` now (synchronously) through the precomputed poser."""
         deg = float(np.clip(degrees, *FLEXION_RANGE))
+        self._live.discard()
         if self.poser is None:
             self.flexion = deg
             return
         if deg == self.flexion and not force and not self.smoothed:
             return
+        self._apply_pose(deg, self.poser.pose(deg))
+
+    def request_flexion(self, degrees: float) -> None:
+        """Re-pose at ``degrees`` as soon as possible (slider drags).
+
+        The pose is computed in a pose thread while the GUI thread draws the previous one;
+        requests that arrive meanwhile collapse into the latest, so a fast drag never queues up.
+        """
+        deg = float(np.clip(degrees, *FLEXION_RANGE))
+        if self.poser is None:
+            self.flexion = deg
+            return
+        if deg == self.flexion and not self.smoothed and not self._live.busy:
+            return
+        self._live.request(self.poser, deg)
+
+    @property
+    def pose_pending(self) -> bool:
+        """Whether a requested pose is still being computed."""
+        return self._live.busy
+
+    def _apply_pose(self, deg: float, coords: NDArray[np.float64]) -> None:
         self.flexion = deg
-        self.coords = self.poser.pose(deg)
+        self.coords = coords
         self.smoothed = False
         self._quality = None
         self.coords_changed.emit()
@@ -567,6 +593,13 @@ class Workspace(QObject):
             self.status.emit(f"busy with {self.tasks.current_name}; try again when it ends")
         return started
 
+    def shutdown(self, msecs: int = 10000) -> None:
+        """Cancel background work and wait for the worker threads (window closing, tests)."""
+        self.tasks.cancel()
+        self._live.discard()
+        self.tasks.wait(msecs)
+        self._live.wait(msecs)
+
     def on_task_finished(self) -> None:
         """Run a poser rebuild that was deferred while another task ran."""
         if self._poser_stale:
@@ -639,6 +672,78 @@ class Workspace(QObject):
             self.status.emit(f"exported {result} ({n_inv} inverted)")
 
         return self._start("Exporting", work, done)
+
+
+class _LiveRelay(QObject):
+    done = Signal(object)
+
+
+class LivePoser(QObject):
+    """Computes slider poses in one background thread, keeping only the latest request."""
+
+    def __init__(self, workspace: Workspace):
+        super().__init__(workspace)
+        from PySide6.QtCore import QThreadPool
+
+        self._ws = workspace
+        self._pool = QThreadPool(self)
+        self._pool.setMaxThreadCount(1)
+        self._relay = _LiveRelay(self)
+        self._relay.done.connect(self._on_done)
+        self._running = False
+        self._next: tuple[Poser, float] | None = None
+        self._generation = 0
+
+    @property
+    def busy(self) -> bool:
+        return self._running or self._next is not None
+
+    def request(self, poser: Poser, degrees: float) -> None:
+        self._next = (poser, degrees)
+        if not self._running:
+            self._start()
+
+    def discard(self) -> None:
+        """Forget pending and running requests (a synchronous pose supersedes them)."""
+        self._next = None
+        self._generation += 1
+
+    def wait(self, msecs: int = -1) -> bool:
+        return self._pool.waitForDone(msecs)
+
+    def _start(self) -> None:
+        from PySide6.QtCore import QRunnable
+
+        poser, degrees = self._next
+        self._next = None
+        self._running = True
+        generation, relay = self._generation, self._relay
+
+        class Job(QRunnable):
+            def run(self) -> None:
+                try:
+                    result = poser.pose(degrees)
+                except Exception as exc:  # shown by the workspace's error boundary
+                    result = exc
+                relay.done.emit((generation, poser, degrees, result))
+
+        job = Job()
+        job.setAutoDelete(True)
+        self._pool.start(job)
+
+    def _on_done(self, payload) -> None:
+        generation, poser, degrees, result = payload
+        self._running = False
+        ws = self._ws
+        if generation == self._generation and poser is ws.poser:
+            if isinstance(result, Exception):
+                ws.error.emit(result)
+            else:
+                ws._apply_pose(degrees, result)
+        if self._next is not None:
+            self._start()
+        elif not self._running:
+            ws.live_idle.emit()
 
 
 def read_setup_json(path: str | Path) -> dict[str, Any]:

@@ -60,7 +60,7 @@ def synthetic_files(tmp_path_factory):
 
 def wait_idle(qtbot, ws, timeout: float = 120.0) -> None:
     """Wait until no background task runs and pending signals are delivered."""
-    qtbot.waitUntil(lambda: not ws.tasks.busy, timeout=int(timeout * 1000))
+    qtbot.waitUntil(lambda: not ws.tasks.busy and not ws.pose_pending, timeout=int(timeout * 1000))
     end = time.monotonic() + 0.05
     from PySide6.QtWidgets import QApplication
 
@@ -80,8 +80,7 @@ def window(qtbot):
     win.show()
     qtbot.waitExposed(win)
     yield win
-    win.ws.tasks.cancel()
-    win.ws.tasks.wait(10000)
+    win.ws.shutdown()
     win.close()
 
 

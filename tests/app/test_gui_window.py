@@ -46,6 +46,7 @@ def drag(widget, a: QPoint, b: QPoint) -> None:
 def set_slider(window, qtbot, degrees: float) -> None:
     panel = window.flexion_panel
     panel.slider.setValue(round(degrees * 10))
+    wait_idle(qtbot, window.ws)
     window.viewport.flush()
 
 
@@ -90,8 +91,11 @@ def test_slider_reposes_live_points_in_place(demo_window, qtbot):
     slider = demo_window.flexion_panel.slider
     for value in (300, 600, 900):
         slider.setValue(value)
+    assert ws.pose_pending  # computed in the pose thread while the GUI stays responsive
+    wait_idle(qtbot, ws)
     qtbot.waitUntil(lambda: vp.renders > renders, timeout=5000)
-    assert vp.flushes == flushes + 1  # three slider events, one batched update
+    # three slider events: the 60° request was superseded, at most two poses were drawn
+    assert vp.flushes - flushes <= 2
     assert ws.flexion == 90.0
     np.testing.assert_allclose(ws.coords, ws.poser.pose(90.0))
     assert measure_flexion(ws.coords, ws.setup) == pytest.approx(90.0, abs=0.2)
