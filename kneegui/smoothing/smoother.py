@@ -229,12 +229,16 @@ def _score(
 
 
 def _accept(
-    old: _NeighbourhoodScore, new: _NeighbourhoodScore, floor: float, aspect_limit: float
+    old: _NeighbourhoodScore,
+    new: _NeighbourhoodScore,
+    floor: float,
+    aspect_limit: float,
 ) -> NDArray:
     """Which moves to keep: the worst J* around the node does not drop, the summed J* rises,
     no more elements are invalid, no corner Jacobian falls below ``floor`` (the worst of the
     region before smoothing, so that value can never get worse), and the largest edge ratio
-    stays below ``max(its old value, aspect_limit)``."""
+    stays below ``max(its old value, aspect_limit)``. (Single elements other than the worst may
+    lose quality: forbidding it stops untangling.)"""
     eps = 1e-12 * np.maximum(np.abs(old.total), 1.0)
     return (
         (new.worst >= old.worst)
@@ -840,7 +844,8 @@ def _batched_stage(
         start = st.coords[nodes].copy()
         st.coords[nodes] = problems.x0 + np.einsum("nij,nj->ni", problems.projector, u)
         new_j, new_s, new_a = _evaluate(nb, st.coords, handles)
-        accept = _accept(old, _score(new_j, new_s, new_a, owner, n), st.floor, st.aspect_limit)
+        new = _score(new_j, new_s, new_a, owner, n)
+        accept = _accept(old, new, st.floor, st.aspect_limit)
         st.coords[nodes[~accept]] = start[~accept]
         kept = accept[owner]
         st.jac[handles[kept]] = new_j[kept]
