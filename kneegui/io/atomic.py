@@ -12,10 +12,23 @@ from collections.abc import Mapping
 from pathlib import Path
 
 
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _write_temp(target: Path, data: bytes) -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
     try:
+        # mkstemp makes the file private (0600); give it the mode the file it replaces had,
+        # or the usual mode for a new file (0666 less the umask)
+        try:
+            mode = target.stat().st_mode & 0o7777
+        except FileNotFoundError:
+            mode = 0o666 & ~_current_umask()
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -45,6 +58,9 @@ def atomic_write_many(files: Mapping[Path, bytes]) -> list[Path]:
     """
     temps: list[tuple[Path, Path]] = []
     try:
+        for target in files:
+            if Path(target).is_dir():
+                raise IsADirectoryError(f"{target} is a folder; cannot write a file there")
         for target, data in files.items():
             temps.append((_write_temp(Path(target), data), Path(target)))
     except BaseException:
