@@ -258,22 +258,18 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
     # soft tissue slides on the bones around the joint (see kneegui.demo.sliding)
     grid_coords = grid.coords
     role_pids = {r: [s.pid for s in PARTS if s.role == r] for r in {s.role for s in PARTS}}
-    for bones, soft in (
-        (
-            role_pids["femur"],
-            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["meniscus"],
-        ),
-        (
-            role_pids["tibia"] + role_pids["fibula"],
-            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"],
-        ),
+    sliding = role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
+    for bones, soft, attached in (
+        # the menisci slide under the femur but sit on the tibia; the flesh slides on both
+        (role_pids["femur"], sliding + role_pids["meniscus"], []),
+        (role_pids["tibia"] + role_pids["fibula"], sliding, []),
     ):
         grid_coords, (hex_conn, quad_conn) = detach_soft_tissue(
             grid_coords,
             [(hex_conn, hex_pid), (quad_conn, quad_pid)],
             bones,
             soft,
-            attached_pids=role_pids["ligament"] + role_pids["tendon"],
+            attached_pids=attached,
         )
 
     used = np.unique(np.concatenate([hex_conn.ravel(), quad_conn.ravel()]))

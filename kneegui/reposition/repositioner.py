@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
@@ -75,6 +76,10 @@ class RepositionOptions:
         A skin node closer to a bone than this fraction of its initial clearance is pushed out.
     regularisation : float
         Pull of the harmonic weights towards the distance prior.
+    coupling_strength, coupling_length, coupling_radii
+        Pull of tissue lying on a bone towards that bone's motion: strength (relative to the
+        mean node degree), decay length from the bone surface (model units), and the distances
+        from the F-E axis (in mean condyle radii) over which it fades in from zero.
     """
 
     method: str = "blend"
@@ -83,6 +88,9 @@ class RepositionOptions:
     max_scale: float = 2.0
     clearance_fraction: float = 0.5
     regularisation: float = 1e-4
+    coupling_strength: float = 1.0
+    coupling_length: float = 3.0
+    coupling_radii: tuple[float, float] = (2.5, 4.5)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -298,7 +306,33 @@ class Repositioner:
             model.coords,
             surfaces,
             self.options.regularisation,
+            prior_strength=self._bone_coupling(surfaces),
         )
+
+    def _bone_coupling(self, surfaces: list[NDArray[np.int64]]) -> NDArray[np.float64]:
+        """How strongly each soft node is pulled to the bone it lies on.
+
+        Tissue lying on a bone (within ``coupling_length`` of its surface) follows that bone
+        away from the joint, where it is attached in a real limb, but is free to slide in the
+        joint region, so that nothing is torn between femur and tibia. The pull fades in
+        smoothly with the distance from the F-E axis, from ``coupling_radii[0]`` to
+        ``coupling_radii[1]`` times the mean condyle radius.
+        """
+        opt = self.options
+        coords = self.model.coords
+        soft = self.groups.soft
+        bone_pts = np.concatenate([srf for srf in surfaces[:3] if len(srf)])
+        if opt.coupling_strength <= 0 or len(bone_pts) == 0:
+            return np.zeros(len(soft))
+        d, _ = cKDTree(coords[bone_pts]).query(coords[soft])
+        rel = coords[soft] - self.axes.fe_axis.point
+        axial = rel @ self.axes.fe_axis.direction
+        r = np.linalg.norm(rel - axial[:, None] * self.axes.fe_axis.direction, axis=1)
+        size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        lo, hi = (k * size for k in opt.coupling_radii)
+        t = np.clip((r - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+        fade = t * t * (3.0 - 2.0 * t)
+        return opt.coupling_strength * np.exp(-d / opt.coupling_length) * fade
 
     # ---------------------------------------------------------------------- posing
     def bone_pose(self, flexion_deg: float) -> BonePose:

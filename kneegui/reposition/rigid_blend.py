@@ -89,6 +89,8 @@ def harmonic_weights(
     coords: NDArray[np.float64],
     anchor_surfaces: Sequence[NDArray[np.int64]] | None = None,
     regularisation: float = 1e-4,
+    edge_weighting: str = "inverse_square_length",
+    prior_strength: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Harmonic partition-of-unity weights of ``free`` nodes with respect to anchor groups.
 
@@ -113,6 +115,12 @@ def harmonic_weights(
         Subsets of the anchors used for the distance prior (default: the anchors).
     regularisation : float
         Strength of the prior relative to the mean node degree.
+    prior_strength : (F,) ndarray, optional
+        Extra pull of each free node towards its prior, relative to the mean node degree (e.g.
+        strong for tissue lying on a bone away from the joint, zero in the joint).
+    edge_weighting : str
+        ``"inverse_square_length"`` (default: a discretisation of the continuous Laplacian that
+        does not depend on how finely each region is meshed) or ``"uniform"`` (graph Laplacian).
 
     Returns
     -------
@@ -134,9 +142,20 @@ def harmonic_weights(
     a, b = edges[:, 0], edges[:, 1]
     keep = (pos[a] >= 0) | (pos[b] >= 0)
     a, b = a[keep], b[keep]
-    deg = np.bincount(np.concatenate([a, b]), minlength=n_nodes).astype(np.float64)
-    eps = regularisation * max(float(deg[free].mean()), 1.0)
-    rhs = eps * prior
+    if edge_weighting == "inverse_square_length":
+        length2 = np.sum((coords[a] - coords[b]) ** 2, axis=1)
+        ew = 1.0 / np.maximum(length2, 1e-12 * max(float(np.median(length2)), 1e-30))
+        ew /= float(np.median(ew))
+    else:
+        ew = np.ones(len(a))
+    deg = np.bincount(
+        np.concatenate([a, b]), weights=np.concatenate([ew, ew]), minlength=n_nodes
+    ).astype(np.float64)
+    scale = max(float(deg[free].mean()), 1.0)
+    eps = regularisation * scale * np.ones(len(free))
+    if prior_strength is not None:
+        eps = eps + scale * np.asarray(prior_strength, dtype=np.float64)
+    rhs = eps[:, None] * prior
     rows, cols, vals = [], [], []
     for u, v in ((a, b), (b, a)):
         fu = pos[u] >= 0
@@ -144,11 +163,11 @@ def harmonic_weights(
         both = fu & fv
         rows.append(pos[u[both]])
         cols.append(pos[v[both]])
-        vals.append(np.full(int(both.sum()), -1.0))
+        vals.append(-ew[both])
         # edges to anchored (Dirichlet) nodes move to the right-hand side
         known = fu & ~fv
         known &= ~np.isnan(value[v, 0])
-        np.add.at(rhs, pos[u[known]], value[v[known]])
+        np.add.at(rhs, pos[u[known]], ew[known][:, None] * value[v[known]])
     diag = deg[free] + eps
     lap = sp.csr_matrix(
         (
