@@ -82,6 +82,9 @@ class SmoothingReport:
         Worst corner Jacobian of the elements touching a movable node.
     inverted_before, inverted_after : int
         Elements touching a movable node with corner Jacobian <= 0.
+    inverted_out_of_reach : int
+        Inverted elements none of whose nodes may move: smoothing cannot repair them (e.g.
+        elements between bone and skin nodes).
     max_displacement : float
         Largest node displacement (model units).
     seconds : float
@@ -101,6 +104,7 @@ class SmoothingReport:
     inverted_after: int
     max_displacement: float
     seconds: float
+    inverted_out_of_reach: int = 0
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""
@@ -649,6 +653,7 @@ def smooth_mesh(
         inverted_after=int(np.count_nonzero(jac <= 0)),
         max_displacement=float(displacement.max()) if n_nodes else 0.0,
         seconds=time.perf_counter() - started,
+        inverted_out_of_reach=_inverted_out_of_reach(blocks, coords, free | sliding),
     )
     return coords, report
 
@@ -870,6 +875,23 @@ def _corner_determinants(
     else:
         vc = points[:, t[:, 3]] - i
     return np.einsum("mtk,mtk->mt", np.cross(va, vb), vc)
+
+
+def _inverted_out_of_reach(
+    blocks: Mapping[str, ElementBlock], coords: NDArray[np.float64], movable: NDArray[np.bool_]
+) -> int:
+    """Inverted solid/quad elements with no movable node (unchanged by smoothing)."""
+    count = 0
+    for etype in SMOOTHED_TYPES:
+        block = blocks.get(etype)
+        if block is None or len(block) == 0:
+            continue
+        conn = block.conn[:, : CORNER_NODES[etype]]
+        out = conn[~movable[conn].any(axis=1)]
+        for start in range(0, len(out), 65536):
+            jac, _ = corner_quality(coords[out[start : start + 65536]], etype)
+            count += int(np.count_nonzero(jac <= 0))
+    return count
 
 
 def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:

@@ -362,3 +362,27 @@ def test_batched_local_problem_is_the_exact_affine_map(kind, block_model):
     predicted = problem.d0[0] + problem.grad[0] @ delta
     np.testing.assert_allclose(predicted[:, : exact.shape[1]], exact, rtol=1e-10, atol=1e-12)
     assert objective(problem, np.zeros((1, 2, 3))).shape == (1, 2)
+
+
+def test_report_counts_inverted_elements_out_of_reach(block_model):
+    # a flesh layer one element thick: every node is on the bone interface or the surface
+    thin = block_model(5, 5, 2, bone_layers=1, skin=False)
+    c = thin.coords.copy()
+    c[np.all(c == (2, 2, 2), axis=1)] = (2.0, 2.0, 0.8)  # pushed through the layer
+    posed = thin.with_coords(c)
+    q = compute_quality(posed.coords, posed.blocks)
+    free = smoothing_free_nodes(posed, [2], [1], degraded_elements(q))
+    assert not free.any() and q.n_inverted > 0
+    new, report = smooth_mesh(posed, None, free)
+    assert np.array_equal(new, posed.coords)
+    assert report.inverted_out_of_reach == q.n_inverted
+    assert report.to_dict()["inverted_out_of_reach"] == q.n_inverted
+    # in a thick block the same push is repaired and nothing is out of reach
+    thick = block_model(5, 5, 4, bone_layers=1, skin=False)
+    c = thick.coords.copy()
+    c[np.all(c == (2, 2, 3), axis=1)] = (2.0, 2.0, 1.8)
+    posed = thick.with_coords(c)
+    q = compute_quality(posed.coords, posed.blocks)
+    new, report = smooth_mesh(posed, None, smoothing_free_nodes(posed, [2], [1]))
+    assert q.n_inverted > 0 and report.inverted_out_of_reach == 0
+    assert compute_quality(new, posed.blocks).n_inverted == 0
