@@ -266,8 +266,7 @@ class MainWindow(QMainWindow):
 
     def save_screenshot(self, path: str | Path) -> Path:
         """Save the whole window as a PNG, 3-D view included."""
-        self.viewport.flush()
-        self.viewport.render()
+        self.viewport.flush_all()
         image = self.grab().toImage()
         view = self.viewport.plotter
         frame = self.viewport.plotter.screenshot(None, return_img=True)

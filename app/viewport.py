@@ -28,6 +28,8 @@ from app.scene import PartSurface, build_grid, part_surfaces
 from app.workspace import HEATMAP_METRICS, Workspace
 
 PICK_CLICK_PIXELS = 4
+#: Camera presets frame the visible geometry within this distance of the knee centre (mm).
+KNEE_VIEW_RADIUS_MM = 250.0
 CAMERA_PRESETS = ("lateral", "medial", "anterior", "posterior")
 
 
@@ -126,6 +128,13 @@ class Viewport(QWidget):
         if "axes" in dirty:
             self._update_axes_overlay()
         self.render()
+
+    def flush_all(self) -> None:
+        """Apply everything pending now, including the deferred re-fit of circles and axes."""
+        if self._axes_timer.isActive():
+            self._axes_timer.stop()
+            self._dirty.add("axes")
+        self.flush()
 
     def render(self, now: bool = False) -> None:
         """Schedule one repaint of the 3-D view (``now``: repaint before returning).
@@ -528,8 +537,9 @@ class Viewport(QWidget):
             self.surfaces[p].model_index for p in self.surfaces if p not in self.ws.hidden_parts
         ]
         pts = self.ws.coords[np.concatenate(visible)] if visible else self.ws.coords
-        extent = float(np.linalg.norm(np.ptp(pts, axis=0))) or 1.0
         centre = frame["center"]
+        near = pts[np.linalg.norm(pts - centre, axis=1) < KNEE_VIEW_RADIUS_MM]
+        extent = float(np.linalg.norm(np.ptp(near if len(near) > 10 else pts, axis=0))) or 1.0
         cam = self.plotter.camera
         cam.focal_point = centre
         cam.position = centre + direction * extent * 1.4
