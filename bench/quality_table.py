@@ -87,7 +87,8 @@ def to_markdown(result: dict, machine: dict) -> str:
                 f"- smoothing: {s['free_nodes']} free nodes, {s['moved_nodes']} moved, "
                 f"{s['stage1_moves']} stage-1 moves in {s['stage1_sweeps']} sweeps, "
                 f"{s['stage2_improved']}/{s['stage2_nodes']} nodes improved by Nelder-Mead, "
-                f"{s['seconds']:.2f} s"
+                f"{s['seconds']:.2f} s; inverted elements with no movable node: "
+                f"{s.get('inverted_out_of_reach', 'n/a')}"
             )
         gate = r["gate"]
         lines.append(
