@@ -29,6 +29,7 @@ from kneegui.model import ElementBlock, Model
 from kneegui.smoothing.batched import build_problems, nelder_mead
 from kneegui.smoothing.topology import (
     ELEMENT_EDGES,
+    SOLID_FACES,
     boundary_faces,
     boundary_node_normals,
     unique_pairs,
@@ -200,6 +201,44 @@ def edge_ratio(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
     return np.sqrt(out)
 
 
+_QUAD_FACES = {
+    "hex8": np.array(SOLID_FACES["hex8"]),
+    "wedge6": np.array([f for f in SOLID_FACES["wedge6"] if len(f) == 4]),
+    "pyramid5": np.array([f for f in SOLID_FACES["pyramid5"] if len(f) == 4]),
+    "quad4": np.array([(0, 1, 2, 3)]),
+}
+
+
+def warp_cosine(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
+    """Cosine of the worst quad-face warpage of each element (1: flat faces or none).
+
+    Same definition as the reported warpage (both diagonal splits of every quad face).
+    """
+    faces = _QUAD_FACES.get(etype)
+    if faces is None:
+        return np.ones(len(points))
+    p = np.moveaxis(points[:, faces], 3, 0)  # (3, m, F, 4)
+    p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+
+    def cross(a, b):
+        return np.stack(
+            [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+        )
+
+    d01, d02, d03 = p1 - p0, p2 - p0, p3 - p0
+    area2 = cross(d02, p3 - p1)
+    n012 = cross(d01, d02)
+    n013 = cross(d01, d03)
+    worst = np.ones(points.shape[0])
+    for a in (n012, n013):
+        b = area2 - a
+        den = np.sqrt((a * a).sum(axis=0) * (b * b).sum(axis=0))
+        cos = np.ones_like(den)
+        np.divide((a * b).sum(axis=0), den, out=cos, where=den > 0)
+        worst = np.minimum(worst, cos.min(axis=1))
+    return worst
+
+
 @dataclass(frozen=True)
 class _NeighbourhoodScore:
     """Per-node summary of the elements sharing the node."""
@@ -209,10 +248,11 @@ class _NeighbourhoodScore:
     inverted: NDArray  # number of elements with Jacobian <= 0
     worst_jacobian: NDArray  # smallest corner Jacobian (the reported measure)
     worst_aspect: NDArray  # largest edge ratio
+    worst_warp: NDArray  # smallest warpage cosine (largest warpage)
 
 
 def _score(
-    jac: NDArray, scaled: NDArray, aspect: NDArray, owner: NDArray, n: int
+    jac: NDArray, scaled: NDArray, aspect: NDArray, warp: NDArray, owner: NDArray, n: int
 ) -> _NeighbourhoodScore:
     star = ordered_quality(jac, scaled)
     worst = np.full(n, np.inf)
@@ -223,8 +263,11 @@ def _score(
     total = np.bincount(owner, star, minlength=n) + count * np.where(count > 0, worst, 0.0)
     worst_aspect = np.zeros(n)
     np.maximum.at(worst_aspect, owner, aspect)
+    worst_warp = np.ones(n)
+    np.minimum.at(worst_warp, owner, warp)
     return _NeighbourhoodScore(
         worst_aspect=worst_aspect,
+        worst_warp=worst_warp,
         worst=worst,
         total=total,
         inverted=np.bincount(owner, (jac <= 0).astype(float), minlength=n),
@@ -237,6 +280,7 @@ def _accept(
     new: _NeighbourhoodScore,
     floor: float,
     aspect_limit: float,
+    warp_limit_cos: float,
 ) -> NDArray:
     """Which moves to keep: the worst J* around the node does not drop, the summed J* rises,
     no more elements are invalid, no corner Jacobian falls below ``floor`` (the worst of the
@@ -250,6 +294,7 @@ def _accept(
         & (new.inverted <= old.inverted)
         & (new.worst_jacobian >= floor)
         & (new.worst_aspect <= np.maximum(old.worst_aspect, aspect_limit))
+        & (new.worst_warp >= np.minimum(old.worst_warp, warp_limit_cos))
     )
 
 
@@ -349,6 +394,7 @@ def _evaluate(
     jac = np.empty(len(handles))
     scaled = np.empty(len(handles))
     aspect = np.empty(len(handles))
+    warp = np.empty(len(handles))
     types = nb.handle_type[handles]
     for ti, etype in enumerate(nb.types):
         sel = np.flatnonzero(types == ti)
@@ -357,7 +403,8 @@ def _evaluate(
             points = coords[nb.conn[ti][rows]]
             jac[sel], scaled[sel] = corner_quality(points, etype)
             aspect[sel] = edge_ratio(points, etype)
-    return jac, scaled, aspect
+            warp[sel] = warp_cosine(points, etype)
+    return jac, scaled, aspect, warp
 
 
 def _colour(
@@ -428,6 +475,7 @@ def smooth_mesh(
     passes: int = 3,
     sliding_feature_angle: float = 30.0,
     aspect_limit: float = 5.0,
+    warpage_limit: float = 15.0,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
 ) -> tuple[NDArray[np.float64], SmoothingReport]:
@@ -475,6 +523,8 @@ def smooth_mesh(
     aspect_limit : float
         A move may not raise the largest edge ratio (longest / shortest edge) of the elements
         sharing the node above ``max(its value before the move, aspect_limit)``.
+    warpage_limit : float
+        Likewise for the largest quad-face warpage (degrees) of the elements sharing the node.
     progress : callable(fraction, message), optional
         Called with the fraction done (0-1) and a short message.
     cancel : callable() -> bool, optional
@@ -551,7 +601,7 @@ def smooth_mesh(
     nb = _build_neighbourhood(blocks, movable, n_nodes)
     n_mov = len(movable)
     all_handles = np.arange(nb.offset[-1])
-    jac, scaled, aspect = _evaluate(nb, coords, all_handles)
+    jac, scaled, aspect, warp = _evaluate(nb, coords, all_handles)
     worst_before = float(jac.min()) if len(jac) else float("nan")
     inverted_before = int(np.count_nonzero(jac <= 0))
     # per-node projector onto the allowed directions (identity for free nodes)
@@ -592,8 +642,8 @@ def smooth_mesh(
         else:
             goal[span] = float(target)
     state = _State(
-        nb, coords, jac, scaled, aspect, movable, projector, basis, worst_before, scale,
-        float(aspect_limit), goal,
+        nb, coords, jac, scaled, aspect, warp, movable, projector, basis, worst_before, scale,
+        float(aspect_limit), float(np.cos(np.radians(warpage_limit))), goal,
     )  # fmt: skip
     moves = sweeps = optimized = improved = 0
     n_passes = max(int(passes), 1) if n_mov else 0
@@ -667,12 +717,14 @@ class _State:
     jac: NDArray[np.float64]
     scaled: NDArray[np.float64]
     aspect: NDArray[np.float64]
+    warp: NDArray[np.float64]
     movable: NDArray[np.int64]
     projector: NDArray[np.float64]
     basis: dict[int, NDArray[np.float64]]
     floor: float
     scale: float
     aspect_limit: float
+    warp_limit_cos: float
     goal: NDArray[np.float64]  # per element (handle): the quality it should reach
 
     def deficit(self, handles: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -694,7 +746,7 @@ def _laplacian_stage(
     Each sweep works on the nodes sharing an element below its goal and the nodes sharing an
     element with them.
     """
-    nb, coords, jac, scaled, aspect = st.nb, st.coords, st.jac, st.scaled, st.aspect
+    nb, coords, jac, scaled, aspect, warp = st.nb, st.coords, st.jac, st.scaled, st.aspect, st.warp
     n_mov = len(st.movable)
     all_handles, all_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
     conflict_ptr, conflict_nbrs = conflicts
@@ -729,22 +781,25 @@ def _laplacian_stage(
             step = np.einsum("nij,nj->ni", st.projector[group], mean - coords[nodes])
             active = np.linalg.norm(step, axis=1) > tolerance
             handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, group)
-            old = _score(jac[handles], scaled[handles], aspect[handles], h_owner, len(group))
+            old = _score(
+                jac[handles], scaled[handles], aspect[handles], warp[handles], h_owner, len(group)
+            )
             start = coords[nodes].copy()
             for omega in relaxation:
                 if not active.any():
                     break
                 coords[nodes[active]] = start[active] + omega * step[active]
                 sel = active[h_owner]
-                new_j, new_s, new_a = _evaluate(nb, coords, handles[sel])
-                new = _score(new_j, new_s, new_a, h_owner[sel], len(group))
-                accept = active & _accept(old, new, st.floor, st.aspect_limit)
+                new_j, new_s, new_a, new_w = _evaluate(nb, coords, handles[sel])
+                new = _score(new_j, new_s, new_a, new_w, h_owner[sel], len(group))
+                accept = active & _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)
                 reject = active & ~accept
                 coords[nodes[reject]] = start[reject]  # put rejected nodes back
                 kept = accept[h_owner[sel]]
                 jac[handles[sel][kept]] = new_j[kept]
                 scaled[handles[sel][kept]] = new_s[kept]
                 aspect[handles[sel][kept]] = new_a[kept]
+                warp[handles[sel][kept]] = new_w[kept]
                 moved_this_sweep += int(accept.sum())
                 if accept.any():
                     largest_move = max(largest_move, omega * float(np.abs(step[accept]).max()))
@@ -832,7 +887,9 @@ def _batched_stage(
         n = len(sub)
         counts = np.bincount(owner, minlength=n)
         slot = np.arange(len(handles)) - np.repeat(np.cumsum(counts) - counts, counts)
-        old = _score(st.jac[handles], st.scaled[handles], st.aspect[handles], owner, n)
+        old = _score(
+            st.jac[handles], st.scaled[handles], st.aspect[handles], st.warp[handles], owner, n
+        )
         types = nb.handle_type[handles]
         handle_lists = []
         for ti, etype in enumerate(nb.types):
@@ -848,14 +905,15 @@ def _batched_stage(
         u = nelder_mead(problems, iterations, check_cancel)
         start = st.coords[nodes].copy()
         st.coords[nodes] = problems.x0 + np.einsum("nij,nj->ni", problems.projector, u)
-        new_j, new_s, new_a = _evaluate(nb, st.coords, handles)
-        new = _score(new_j, new_s, new_a, owner, n)
-        accept = _accept(old, new, st.floor, st.aspect_limit)
+        new_j, new_s, new_a, new_w = _evaluate(nb, st.coords, handles)
+        new = _score(new_j, new_s, new_a, new_w, owner, n)
+        accept = _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)
         st.coords[nodes[~accept]] = start[~accept]
         kept = accept[owner]
         st.jac[handles[kept]] = new_j[kept]
         st.scaled[handles[kept]] = new_s[kept]
         st.aspect[handles[kept]] = new_a[kept]
+        st.warp[handles[kept]] = new_w[kept]
         tried += n
         improved += int(accept.sum())
     return tried, improved
@@ -970,7 +1028,7 @@ def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
     shape = d0.shape
     n_el = shape[0]
     one = np.zeros(len(handles), dtype=np.int64)
-    old = _score(st.jac[handles], st.scaled[handles], st.aspect[handles], one, 1)
+    old = _score(st.jac[handles], st.scaled[handles], st.aspect[handles], st.warp[handles], one, 1)
     old_worst = float(old.worst[0])
     old_inverted = float(old.inverted[0])
     aspect_cap = max(float(old.worst_aspect[0]), st.aspect_limit)
@@ -1009,7 +1067,7 @@ def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
         },
     )
     x = x0 + b @ res.x
-    js, ss, asp = [], [], []
+    js, ss, asp, wrp = [], [], [], []
     for etype, at, pts, _ in groups:
         p = pts.copy()
         p[at] = x
@@ -1017,11 +1075,14 @@ def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
         js.append(j)
         ss.append(s_)
         asp.append(edge_ratio(p, etype))
-    j, s_, a = np.concatenate(js), np.concatenate(ss), np.concatenate(asp)
-    if _accept(old, _score(j, s_, a, one, 1), st.floor, st.aspect_limit)[0]:
+        wrp.append(warp_cosine(p, etype))
+    j, s_, a, w = np.concatenate(js), np.concatenate(ss), np.concatenate(asp), np.concatenate(wrp)
+    new = _score(j, s_, a, w, one, 1)
+    if _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)[0]:
         coords[node] = x
         st.jac[handles] = j
         st.scaled[handles] = s_
         st.aspect[handles] = a
+        st.warp[handles] = w
         return 1
     return 0

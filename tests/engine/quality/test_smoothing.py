@@ -108,6 +108,9 @@ def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, opti
     before = edge_ratio(posed.coords[hexes], "hex8").max()
     after = edge_ratio(new[hexes], "hex8").max()
     assert after <= max(before, 5.0) + 1e-12
+    # ... nor the largest warpage above max(its old value, warpage_limit = 15 degrees)
+    warp_before = q_before["hex8"].warpage.max()
+    assert q_after["hex8"].warpage.max() <= max(warp_before, 15.0) + 1e-9
 
 
 @pytest.mark.parametrize("optimizer", ["batched", "scipy"])
