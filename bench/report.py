@@ -78,6 +78,32 @@ def verdict(measured: float | None, target: float, why_missing: str = "not measu
 
 
 # ------------------------------------------------------------------------------------ lookups
+def _pick(d: dict, *keys: str) -> Any:
+    for k in keys:
+        if d.get(k) is not None:
+            return d[k]
+    return None
+
+
+def gui_summary(gui: dict) -> dict | None:
+    """Frame time and rate from bench/gui_bench.py's JSON (None if it has no frame time)."""
+    res = gui.get("results") or {}
+    parts, heat = res.get("part_colours") or {}, res.get("jacobian_heatmap") or {}
+    frame_keys = ("stepwise_median_update_ms", "median_frame_ms")
+    frame = _pick(parts, *frame_keys)
+    if frame is None:
+        return None
+    return {
+        "frame_ms": float(frame),
+        "heatmap_frame_ms": _pick(heat, *frame_keys),
+        "steps": _pick(parts, "slider_positions", "updates"),
+        "stepwise_updates_per_s": _pick(parts, "stepwise_updates_per_s", "updates_per_s"),
+        "drag_updates_per_s": _pick(parts, "drag_updates_per_s"),
+        "target_updates_per_s": gui.get("target_updates_per_s"),
+        "elements": (gui.get("model") or {}).get("elements"),
+    }
+
+
 def size_record(results: dict, requested: int) -> dict | None:
     """The per-size record of the demo requested with ``requested`` elements."""
     for rec in results.get("sizes", []):
@@ -293,18 +319,22 @@ def scaling_table(results: dict) -> list[str]:
     gui = results.get("gui", {})
     if gui.get("skipped"):
         lines += ["", f"GUI frame time: skipped ({gui['skipped']})."]
-    elif gui.get("results"):
-        parts = gui["results"].get("part_colours", {})
-        heat = gui["results"].get("jacobian_heatmap", {})
-        rate = parts.get("updates_per_s", 0.0)
-        target = gui.get("target_updates_per_s")
+    elif gui_summary(gui):
+        g = gui_summary(gui)
+        rate = g["drag_updates_per_s"] or g["stepwise_updates_per_s"] or 0.0
+        target = g["target_updates_per_s"]
+        heat = g["heatmap_frame_ms"]
+        elements = f"{g['elements']:,}-element" if g["elements"] else "default"
         lines += [
             "",
-            f"GUI (bench/gui_bench.py, {gui['model']['elements']:,}-element demo, "
-            f"{parts.get('updates')} slider steps, software OpenGL under Xvfb): median frame "
-            f"{parts.get('median_frame_ms', float('nan')):.1f} ms in part colours, "
-            f"{heat.get('median_frame_ms', float('nan')):.1f} ms with the Jacobian heat map "
-            f"(quality recomputed each step); {rate:.1f} updates/s"
+            f"GUI (bench/gui_bench.py, {elements} demo, {g['steps']} slider positions, software "
+            f"OpenGL under Xvfb): median update {g['frame_ms']:.1f} ms in part colours"
+            + (
+                f", {heat:.1f} ms with the Jacobian heat map (quality recomputed each step)"
+                if heat is not None
+                else ""
+            )
+            + f"; {rate:.1f} updates/s"
             + (
                 f" (GUI target ≥ {target:g}: {'met' if rate >= target else '**missed**'})."
                 if target

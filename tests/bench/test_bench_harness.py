@@ -169,3 +169,23 @@ def test_pose_metrics_of_the_initial_model_show_no_change(small_leg):
     m = pose_metrics(model, model.coords, q0, bones)
     assert m["inverted"] == 0 and m["worse_than_initial_aspect"] == 0
     assert m["max_volume_change_pct"] == 0.0 and m["bone_rigidity_error"] == 0.0
+
+
+def test_gui_summary_reads_both_output_formats_and_refuses_unknown_ones():
+    old = {"results": {"part_colours": {"median_frame_ms": 70.0, "updates": 40}}}
+    new = {
+        "target_updates_per_s": 20.0,
+        "results": {
+            "part_colours": {
+                "stepwise_median_update_ms": 50.0,
+                "slider_positions": 30,
+                "drag_updates_per_s": 18.0,
+            },
+            "jacobian_heatmap": {"stepwise_median_update_ms": 60.0},
+        },
+    }
+    assert report.gui_summary(old)["frame_ms"] == 70.0
+    summary = report.gui_summary(new)
+    assert summary["frame_ms"] == 50.0 and summary["heatmap_frame_ms"] == 60.0
+    assert summary["steps"] == 30 and summary["drag_updates_per_s"] == 18.0
+    assert report.gui_summary({"results": {"part_colours": {"fps": 3}}}) is None
