@@ -77,8 +77,9 @@ def _ratio_of_determinants(dets: Sequence[Arr]) -> Arr:
 def _cos_between(a: Vec, b: Vec) -> Arr:
     """Cosine of the angle between a and b; 1 where either is zero (no angle defined)."""
     den = np.sqrt(_sq(a) * _sq(b))
-    out = np.ones_like(den)
-    np.divide(_dot(a, b), den, out=out, where=den > 0.0)
+    out = _dot(a, b)
+    out /= den  # 0/0 -> nan where a vector is zero (the caller runs under errstate)
+    out[den == 0.0] = 1.0
     return out
 
 
@@ -96,20 +97,16 @@ class _FaceAccumulator:
         hi = np.maximum(np.maximum(edge_sq[0], edge_sq[1]), np.maximum(edge_sq[2], edge_sq[3]))
         lo = np.minimum(np.minimum(edge_sq[0], edge_sq[1]), np.minimum(edge_sq[2], edge_sq[3]))
         self._add_aspect(hi, lo)
-        d01 = p[1] - p[0]
-        d02 = p[2] - p[0]
-        d03 = p[3] - p[0]
-        d13 = p[3] - p[1]
-        area2 = _cross(d02, d13)  # n012 + n023 == n013 + n123 == (p2 - p0) x (p3 - p1)
-        n012 = _cross(d01, d02)
-        n013 = _cross(d01, d03)
+        e0, e1, e2, e3 = p[1] - p[0], p[2] - p[1], p[3] - p[2], p[0] - p[3]
+        # n012 = e0 x e1, n013 = e3 x e0; n012 + n023 == n013 + n123 == (p2 - p0) x (p3 - p1)
+        area2 = _cross(e0 + e1, e1 + e2)
+        n012 = _cross(e0, e1)
+        n013 = _cross(e3, e0)
         c1 = _cos_between(n012, area2 - n012)
         c2 = _cos_between(n013, area2 - n013)
         np.minimum(self.warp_cos, np.minimum(c1, c2), out=self.warp_cos)
         # skew: principal axes (mid-side to mid-side) X1 = m12 - m30, X2 = m23 - m01 (x2)
-        x1 = (p[1] - p[0]) + (p[2] - p[3])
-        x2 = (p[2] - p[1]) + (p[3] - p[0])
-        np.maximum(self.skew_sin, np.abs(_cos_between(x1, x2)), out=self.skew_sin)
+        np.maximum(self.skew_sin, np.abs(_cos_between(e0 - e2, e1 - e3)), out=self.skew_sin)
 
     def add_tri(self, edge_sq: Sequence[Arr]) -> None:
         """Triangle face with squared edge lengths (01, 12, 20)."""
