@@ -29,6 +29,8 @@ from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
 from kneegui.model import Model
+from kneegui.reposition.checks import surface_triangles
+from kneegui.reposition.contact import BoneContact
 from kneegui.reposition.embedding import Embedding, embed_nodes
 from kneegui.reposition.rigid_blend import (
     exp_twists_apply,
@@ -80,6 +82,12 @@ class RepositionOptions:
         Pull of tissue lying on a bone towards that bone's motion: strength (relative to the
         mean node degree), decay length from the bone surface (model units), and the distances
         from the F-E axis (in mean condyle radii) over which it fades in from zero.
+    contact_reach, contact_clearance
+        Soft-tissue nodes within ``contact_reach`` mean condyle radii of a bone slide on it but
+        are kept out of it, at their rest clearance up to ``contact_clearance`` (model units);
+        ``contact_reach = 0`` (the default) turns contact off; 0.25 is a good value when
+        penetrations matter more than element quality (see :mod:`kneegui.reposition.contact`
+        and docs/repositioning.md for the measured trade-off).
     """
 
     method: str = "blend"
@@ -91,6 +99,8 @@ class RepositionOptions:
     coupling_strength: float = 1.0
     coupling_length: float = 3.0
     coupling_radii: tuple[float, float] = (2.5, 4.5)
+    contact_reach: float = 0.0
+    contact_clearance: float = 0.5
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -270,6 +280,11 @@ class Repositioner:
             if method == "paper" and len(self.groups.band):
                 self._band_embedding = embed_nodes(coords, self.groups.skin, self.groups.band)
             self._end("delaunay embedding", t)
+        self._contact: BoneContact | None = None
+        if self.options.contact_reach > 0:
+            t = self._stage("bone contact", 0.9)
+            self._contact = self._bone_contact()
+            self._end("bone contact", t)
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -333,6 +348,29 @@ class Repositioner:
         t = np.clip((r - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
         fade = t * t * (3.0 - 2.0 * t)
         return opt.coupling_strength * np.exp(-d / opt.coupling_length) * fade
+
+    def _bone_contact(self) -> BoneContact:
+        model, setup, g = self.model, self.setup, self.groups
+        triangles = {}
+        for segment, roles in (
+            ("femur", ("femur",)),
+            ("tibia", ("tibia", "fibula")),
+            ("patella", ("patella",)),
+        ):
+            parts = setup.parts_of(*roles)
+            tris = surface_triangles(model, parts, shells=False)
+            triangles[segment] = tris if len(tris) else surface_triangles(model, parts)
+        soft_parts = np.array(setup.parts_of(*SOFT_ROLES), dtype=np.int64)
+        masks = {etype: np.isin(b.part_ids, soft_parts) for etype, b in model.blocks.items()}
+        size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        return BoneContact(
+            model.coords,
+            triangles,
+            g.soft,
+            mesh_edges(model.blocks, masks),
+            reach=self.options.contact_reach * size,
+            clearance=self.options.contact_clearance,
+        )
 
     # ---------------------------------------------------------------------- posing
     def bone_pose(self, flexion_deg: float) -> BonePose:
@@ -403,6 +441,10 @@ class Repositioner:
                 out[g.skin] = skin_xyz
                 out[emb.nodes] += emb.apply(residual[emb.control])
             timings["soft tissue"] = time.perf_counter() - t3
+        if self._contact is not None:
+            t4 = time.perf_counter()
+            self._contact.resolve(out, tr)
+            timings["contact"] = time.perf_counter() - t4
         achieved = measure_flexion(out, self.setup)
         timings["total"] = time.perf_counter() - t0
         return PoseResult(out, float(flexion_deg), float(achieved), bone, skin_report, timings)
