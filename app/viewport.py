@@ -420,10 +420,13 @@ class Viewport(QWidget):
         model = ws.model
         if model is None:
             return
-        for key, colour, name in (
-            ("lateral_condyle", "#ff4040", "lateral_nodes"),
+        sets = [
             ("medial_condyle", "#40a0ff", "medial_nodes"),
-        ):
+            ("lateral_condyle", "#ff4040", "lateral_nodes"),
+        ]
+        if ws.pick_target == "medial_condyle":  # the set being picked is drawn last (on top)
+            sets.reverse()
+        for key, colour, name in sets:
             ids = [i for i in ws.condyle_ids(key) if model.has_nodes([i])[0]]
             if ids:
                 idx = model.node_index(ids)
