@@ -430,7 +430,7 @@ class Viewport(QWidget):
             ids = [i for i in ws.condyle_ids(key) if model.has_nodes([i])[0]]
             if ids:
                 idx = model.node_index(ids)
-                self._add_landmark_points(name, colour, 9, idx)
+                self._add_landmark_points(name, colour, 11, idx)
         sources: list[object] = []
         for key in ("lr_axis", "femur_axis", "tibia_axis"):
             points = ws.setup_dict.get("landmarks", {}).get(key, []) or []

@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
@@ -74,7 +76,16 @@ def main(argv: list[str] | None = None) -> int:
     ws.set_pick_target("lateral_condyle")
     vp.flush()
     vp.camera_preset("lateral")
-    vp.plotter.camera.zoom(1.6)
+    # turn towards the back so both condyle sets and both circles are seen
+    frame = ws.knee_frame()
+    cam = vp.plotter.camera
+    distance = float(np.linalg.norm(np.asarray(cam.position) - np.asarray(cam.focal_point)))
+    view = 0.75 * frame["lateral"] - 0.65 * frame["anterior"] - 0.15 * frame["superior"]
+    cam.position = frame["center"] + distance * view / np.linalg.norm(view)
+    cam.focal_point = frame["center"]
+    cam.up = frame["superior"]
+    cam.zoom(2.2)
+    vp.plotter.reset_camera_clipping_range()
     _pump(app)
     out1 = window.save_screenshot(args.outdir / "gui-landmarks.png")
     ws.set_pick_target("")
