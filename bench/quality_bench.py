@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import time
 from pathlib import Path
@@ -238,14 +239,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-demo", action="store_true", help="skip the demo-leg case")
     args = parser.parse_args(argv)
+    load_before = os.getloadavg()
     results = run(args.repeats, with_demo=not args.no_demo)
+    load_after = os.getloadavg()
     print(_table(results))
     out = ROOT / "bench" / "results" / "quality.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    payload = {"result": results, "repeats": args.repeats, "machine": machine_description()}
+    payload = {
+        "result": results,
+        "repeats": args.repeats,
+        "machine": machine_description(),
+        "load_average_1min": {"before": load_before[0], "after": load_after[0]},
+    }
     out.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
     doc = ROOT / "docs" / "quality-benchmark.md"
-    doc.write_text(to_markdown(results, payload["machine"], args.repeats), encoding="utf-8")
+    text = to_markdown(results, payload["machine"], args.repeats)
+    text += (
+        f"\nOne-minute load average before / after the run: {load_before[0]:.2f} / "
+        f"{load_after[0]:.2f} (other jobs share the machine; CPU seconds are less affected).\n"
+    )
+    doc.write_text(text, encoding="utf-8")
     print(f"\nwritten {out.relative_to(ROOT)} and {doc.relative_to(ROOT)}")
     return 0
 
