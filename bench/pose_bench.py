@@ -385,6 +385,8 @@ def run_child(
             status = "budget"
         wall = time.perf_counter() - t0
         record = json.loads(out.read_text(encoding="utf-8")) if out.exists() else {}
+    record.setdefault("requested_elements", elements)  # the child may not have saved anything
+    record.setdefault("stages", {})
     record["status"] = status
     record["budget_s"] = budget_s
     record["wall_s"] = round(wall, 1)

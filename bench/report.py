@@ -267,7 +267,14 @@ def scaling_table(results: dict) -> list[str]:
     sizes = results.get("sizes", [])
     if not sizes:
         return []
-    head = "| stage | " + " | ".join(f"{r.get('solids', 0):,} solids" for r in sizes) + " |"
+    head = (
+        "| stage | "
+        + " | ".join(
+            f"{r['solids']:,} solids" if r.get("solids") else f"~{r['requested_elements']:,} wanted"
+            for r in sizes
+        )
+        + " |"
+    )
     lines = [
         "## Stages by model size",
         "",
@@ -451,7 +458,8 @@ METHOD_NOTES = """## How it is measured
 - **Command.** `python -m bench` (or `kneegui bench`) regenerates this file,
   bench/results/benchmarks.json (every raw run time, the configuration and the machine) and the
   plots. Each size and the baseline comparison run in a fresh Python process with a wall-clock
-  budget; a stage that had not finished when its budget ran out is reported as such, never
+  budget (the whole run stays under 14.5 minutes; the largest model runs last with the time
+  left); a stage that had not finished when its budget ran out is reported as such, never
   estimated. `--quick` runs the ~2k demo only, with one repeat, for the smoke test.
 - **Figures.** Every time is the median of its repeats (the count is in brackets). Comparisons
   are made within one run on one machine; the paper's figures are printed beside ours,
