@@ -116,8 +116,14 @@ def run(args: argparse.Namespace) -> int:
         if written:
             print(f"{line} -> {written[0]}")
         else:
+            reasons = list(posed.gate_reasons)
+            out_of_reach = (report.get("smoothing") or {}).get("inverted_out_of_reach")
+            if out_of_reach:
+                reasons.append(
+                    f"{out_of_reach} inverted element(s) have no node the smoother may move"
+                )
             print(
-                f"{line}: fails the quality gate ({'; '.join(posed.gate_reasons)}); "
+                f"{line}: fails the quality gate ({'; '.join(reasons)}); "
                 "not written (use --force to write it anyway)"
             )
             status = EXIT_QUALITY_GATE
