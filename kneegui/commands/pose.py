@@ -113,8 +113,11 @@ def run(args: argparse.Namespace) -> int:
             f"{final['jacobian']['worst']:.3f} (initial {q['initial']['jacobian']['worst']:.3f})"
             f", inverted {final['inverted']}"
         )
+        if not posed.passes_gate:
+            status = EXIT_QUALITY_GATE
         if written:
-            print(f"{line} -> {written[0]}")
+            forced = "" if posed.passes_gate else " (fails the quality gate; written with --force)"
+            print(f"{line} -> {written[0]}{forced}")
         else:
             reasons = list(posed.gate_reasons)
             out_of_reach = (report.get("smoothing") or {}).get("inverted_out_of_reach")
@@ -126,5 +129,4 @@ def run(args: argparse.Namespace) -> int:
                 f"{line}: fails the quality gate ({'; '.join(reasons)}); "
                 "not written (use --force to write it anyway)"
             )
-            status = EXIT_QUALITY_GATE
     return status

@@ -1,0 +1,140 @@
+"""`kneegui pose`: deck in, posed deck(s) and reports out, with the documented exit codes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kneegui.io.lsdyna import read_deck
+
+pytest.importorskip("kneegui.demo")
+
+
+def kneegui(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "kneegui.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def demo_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("demo")
+    result = kneegui("demo", str(folder), "--elements", "2000", cwd=folder)
+    assert result.returncode == 0, result.stderr
+    return folder / "demo_leg.k", folder / "demo_leg.setup.json"
+
+
+def test_pose_at_the_initial_angle_passes_and_reports(demo_files, tmp_path):
+    deck, setup = demo_files
+    out, report = tmp_path / "posed" / "leg.k", tmp_path / "posed" / "leg.json"
+    result = kneegui(
+        "pose",
+        str(deck),
+        "--setup",
+        str(setup),
+        "--flexion",
+        "9",
+        "--out",
+        str(out),
+        "--report",
+        str(report),
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    data = json.loads(report.read_text())
+    for key in (
+        "initial_flexion",
+        "target_flexion",
+        "achieved_flexion",
+        "quality",
+        "volume_change",
+        "timings_s",
+    ):
+        assert key in data
+    for stage in ("initial", "posed", "smoothed"):
+        for metric in ("jacobian", "aspect", "warpage", "skew"):
+            assert {"worst", "mean", "std"} <= set(data["quality"][stage][metric])
+        assert "inverted" in data["quality"][stage]
+    assert {"max_element_pct", "soft_tissue_total_pct"} <= set(data["volume_change"])
+    assert abs(data["achieved_flexion"] - 9.0) < 0.1
+    # only node coordinate lines may differ from the input deck
+    before = deck.read_text().splitlines()
+    after = out.read_text().splitlines()
+    assert len(before) == len(after)
+    in_node_block = False
+    for a, b in zip(before, after, strict=True):
+        if a.startswith("*"):
+            in_node_block = a.strip().upper().startswith("*NODE")
+        if a != b:
+            assert in_node_block and a[:8] == b[:8]
+
+
+def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
+    deck, setup = demo_files
+    out = tmp_path / "angles"
+    result = kneegui(
+        "pose",
+        str(deck),
+        "--setup",
+        str(setup),
+        "--flexion",
+        "30",
+        "60",
+        "--out",
+        str(out),
+        "--no-smooth",
+        cwd=tmp_path,
+    )
+    # the demo's worst Jacobian drops below the initial one: the gate fails, nothing written
+    assert result.returncode == 3, result.stdout + result.stderr
+    assert "fails the quality gate" in result.stdout
+    assert not any(out.glob("flex_*/*.k"))
+    result = kneegui(
+        "pose",
+        str(deck),
+        "--setup",
+        str(setup),
+        "--flexion",
+        "30",
+        "60",
+        "--out",
+        str(out),
+        "--no-smooth",
+        "--force",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 3
+    for angle in ("30", "60"):
+        posed = read_deck(out / f"flex_{angle}" / "demo_leg.k")
+        report = json.loads((out / f"flex_{angle}" / "report.json").read_text())
+        assert report["target_flexion"] == float(angle)
+        assert posed.n_nodes == read_deck(deck).n_nodes
+        assert not np.allclose(posed.coords, read_deck(deck).coords)
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--flexion", "500"], "flexion"),
+        (["--flexion", "30", "--setup", "missing.json"], "missing.json"),
+    ],
+)
+def test_bad_input_exit_2_one_line_nothing_written(demo_files, tmp_path, args, fragment):
+    deck, setup = demo_files
+    argv = ["pose", str(deck), "--out", str(tmp_path / "o" / "x.k")]
+    if "--setup" not in args:
+        argv += ["--setup", str(setup)]
+    result = kneegui(*argv, *args, cwd=tmp_path)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in result.stderr
+    assert not (tmp_path / "o").exists()
