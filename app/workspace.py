@@ -92,6 +92,8 @@ class Workspace(QObject):
         self.smoothed = False
         self._evaluator: QualityEvaluator | None = None
         self._quality: QualityResult | None = None
+        self._pose_quality: tuple[NDArray[np.int64], QualityResult] | None = None
+        self._live_cells: NDArray[np.int64] | None = None
         self._initial_quality: QualityResult | None = None
         self.ligaments: tuple[Ligament, ...] = ()
         self.ligament_curve: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -135,6 +137,8 @@ class Workspace(QObject):
         self._evaluator = QualityEvaluator(model.blocks)
         self._initial_quality = self._evaluator.evaluate(model.coords)
         self._quality = self._initial_quality
+        self._pose_quality = None
+        self._live_cells = None
         self.poser = None
         self.ligaments = ()
         self.ligament_curve = None
@@ -396,6 +400,26 @@ class Workspace(QObject):
             return
         self._apply_pose(deg, self.poser.pose(deg))
 
+    def set_live_cells(self, cells: NDArray[np.int64] | None) -> None:
+        """Elements whose quality the view shows (measured with each slider pose), or None."""
+        self._live_cells = cells
+
+    def _live_quality_job(self):
+        """A function measuring the shown elements at given coordinates, for the pose thread."""
+        cells, evaluator, model = self._live_cells, self._evaluator, self.model
+        if cells is None or evaluator is None or model is None:
+            return None
+        from app.scene import block_offsets
+
+        offsets = block_offsets(model)
+        rows = {}
+        for etype, block in model.blocks.items():
+            start = offsets[etype]
+            sel = cells[(cells >= start) & (cells < start + len(block))] - start
+            if len(sel):
+                rows[etype] = sel
+        return lambda coords: (cells, evaluator.evaluate(coords, rows))
+
     def request_flexion(self, degrees: float) -> None:
         """Re-pose at ``degrees`` as soon as possible (slider drags).
 
@@ -408,18 +432,19 @@ class Workspace(QObject):
             return
         if deg == self.flexion and not self.smoothed and not self._live.busy:
             return
-        self._live.request(self.poser, deg)
+        self._live.request(self.poser, deg, self._live_quality_job())
 
     @property
     def pose_pending(self) -> bool:
         """Whether a requested pose is still being computed."""
         return self._live.busy
 
-    def _apply_pose(self, deg: float, coords: NDArray[np.float64]) -> None:
+    def _apply_pose(self, deg: float, coords: NDArray[np.float64], pose_quality=None) -> None:
         self.flexion = deg
         self.coords = coords
         self.smoothed = False
         self._quality = None
+        self._pose_quality = pose_quality
         self.coords_changed.emit()
 
     def set_coords(self, coords: NDArray[np.float64], smoothed: bool = True) -> None:
@@ -427,6 +452,7 @@ class Workspace(QObject):
         self.coords = np.array(coords, dtype=np.float64)
         self.smoothed = smoothed
         self._quality = None
+        self._pose_quality = None
         self.coords_changed.emit()
 
     def posed_model(self) -> Model:
@@ -468,11 +494,12 @@ class Workspace(QObject):
                 sel = cells[(cells >= start) & (cells < start + len(block))] - start
                 if len(sel):
                     rows[etype] = sel
-            q = (
-                self._quality
-                if self._quality is not None
-                else self._evaluator.evaluate(self.coords, rows)
-            )
+            if self._quality is not None:
+                q = self._quality
+            elif self._pose_quality is not None and self._pose_quality[0] is cells:
+                q = self._pose_quality[1]  # measured in the pose thread with this pose
+            else:
+                q = self._evaluator.evaluate(self.coords, rows)
         out = np.full(self.model.n_elements, np.nan)
         offsets = block_offsets(self.model)
         for etype, sel in rows.items():
@@ -691,15 +718,15 @@ class LivePoser(QObject):
         self._relay = _LiveRelay(self)
         self._relay.done.connect(self._on_done)
         self._running = False
-        self._next: tuple[Poser, float] | None = None
+        self._next: tuple | None = None
         self._generation = 0
 
     @property
     def busy(self) -> bool:
         return self._running or self._next is not None
 
-    def request(self, poser: Poser, degrees: float) -> None:
-        self._next = (poser, degrees)
+    def request(self, poser: Poser, degrees: float, measure=None) -> None:
+        self._next = (poser, degrees, measure)
         if not self._running:
             self._start()
 
@@ -714,32 +741,35 @@ class LivePoser(QObject):
     def _start(self) -> None:
         from PySide6.QtCore import QRunnable
 
-        poser, degrees = self._next
+        poser, degrees, measure = self._next
         self._next = None
         self._running = True
         generation, relay = self._generation, self._relay
 
         class Job(QRunnable):
             def run(self) -> None:
+                quality = None
                 try:
                     result = poser.pose(degrees)
+                    if measure is not None:
+                        quality = measure(result)
                 except Exception as exc:  # shown by the workspace's error boundary
                     result = exc
-                relay.done.emit((generation, poser, degrees, result))
+                relay.done.emit((generation, poser, degrees, result, quality))
 
         job = Job()
         job.setAutoDelete(True)
         self._pool.start(job)
 
     def _on_done(self, payload) -> None:
-        generation, poser, degrees, result = payload
+        generation, poser, degrees, result, quality = payload
         self._running = False
         ws = self._ws
         if generation == self._generation and poser is ws.poser:
             if isinstance(result, Exception):
                 ws.error.emit(result)
             else:
-                ws._apply_pose(degrees, result)
+                ws._apply_pose(degrees, result, quality)
         if self._next is not None:
             self._start()
         elif not self._running:

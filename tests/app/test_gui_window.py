@@ -239,6 +239,16 @@ def test_heatmaps_threshold_worst_list_and_cutaway(demo_window, qtbot):
         a.GetMapper().GetClippingPlanes().GetNumberOfItems() == 0 for a in vp.actors.values()
     )
     panel.threshold_on.setChecked(False)
+    vp.flush()
+    # a slider pose brings the quality of the shown elements, measured in the pose thread
+    set_slider(demo_window, qtbot, 60.0)
+    assert ws._pose_quality is not None and ws._pose_quality[0] is vp._shown_cells
+    full = compute_quality(ws.coords, ws.model.blocks).concatenated("jacobian_corner")
+    measured = np.full(ws.model.n_elements, np.nan)
+    measured[np.isfinite(jac)] = full
+    for pid, surf in vp.surfaces.items():
+        if pid not in ws.hidden_parts:
+            np.testing.assert_allclose(surf.mesh.cell_data["value"], measured[surf.cell_index])
     panel.mode.setCurrentIndex(panel.mode.findData("part"))
     vp.flush()
     assert not any(a.mapper.GetScalarVisibility() for a in vp.actors.values())
