@@ -127,7 +127,9 @@ def _breakdown(app, window, repeats: int = 30) -> dict[str, float]:
     }
 
 
-def run(elements: int | None = None, steps: int = 200, drag_hz: float = 60.0) -> dict:
+def run(
+    elements: int | None = None, steps: int = 200, drag_hz: float = 60.0, repeats: int = 3
+) -> dict:
     os.environ.setdefault("QT_API", "pyside6")
     from PySide6.QtCore import QSettings
     from PySide6.QtWidgets import QApplication
@@ -156,11 +158,18 @@ def run(elements: int | None = None, steps: int = 200, drag_hz: float = 60.0) ->
     size = window.viewport.plotter.ren_win.GetSize()
     breakdown = _breakdown(app, window)
     load_before = os.getloadavg()
-    results = {"part_colours": _drive(app, window, steps, drag_hz)}
+
+    def repeated() -> dict[str, float]:
+        runs = [_drive(app, window, steps, drag_hz) for _ in range(repeats)]
+        out = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+        out["runs"] = runs
+        return out
+
+    results = {"part_colours": repeated()}
     window.ws.set_metric("jacobian")
     window.ws.set_colour_mode("quality")
     window.viewport.flush()
-    results["jacobian_heatmap"] = _drive(app, window, steps, drag_hz)
+    results["jacobian_heatmap"] = repeated()
     model = window.ws.model
     out = {
         "benchmark": "gui slider",
@@ -174,6 +183,7 @@ def run(elements: int | None = None, steps: int = 200, drag_hz: float = 60.0) ->
         "open_to_ready_s": ready_s,
         "viewport_pixels": list(size),
         "target_updates_per_s": TARGET_UPDATES_PER_S,
+        "repeats": repeats,
         "results": results,
         "breakdown_ms": breakdown,
         "machine": machine_description(),
@@ -200,6 +210,7 @@ def write_markdown(result: dict, path: Path) -> None:
         "skipped, as Qt does with mouse motion) and the poses actually drawn are counted (the "
         "pose of the latest position is computed in a pose thread while the "
         "previous one is drawn; positions passed meanwhile are skipped). "
+        f"Each figure is the median of {result['repeats']} runs. "
         "Software OpenGL (Mesa llvmpipe) under Xvfb, "
         f"{result['viewport_pixels'][0]}x{result['viewport_pixels'][1]} pixel view, "
         f"poser: {result['poser']}.",
@@ -239,10 +250,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--elements", type=int, default=None, help="demo size (default: app's)")
     parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--repeats", type=int, default=3, help="runs per mode (medians kept)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "gui.json")
     parser.add_argument("--markdown", type=Path, default=ROOT / "docs" / "gui-benchmark.md")
     args = parser.parse_args(argv)
-    result = run(args.elements, args.steps)
+    result = run(args.elements, args.steps, repeats=args.repeats)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     if args.markdown:
