@@ -453,3 +453,18 @@ def test_command_line_screenshot(leg_files, tmp_path):
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert QImage(str(out)).width() > 800
+
+
+def test_save_and_reopen_the_setup(demo_window, qtbot, tmp_path):
+    ws = demo_window.ws
+    lateral = ws.condyle_ids("lateral_condyle")
+    ws.remove_condyle_ids("lateral_condyle", lateral[:2])
+    saved = ws.save_setup(tmp_path / "edited.setup.json")
+    ws.undo()
+    assert ws.condyle_ids("lateral_condyle") == lateral
+    demo_window.guard(ws.open_setup, saved)
+    assert demo_window.last_error is None
+    assert ws.condyle_ids("lateral_condyle") == lateral[2:]
+    assert ws.setup_problem is None and ws.setup_path == saved
+    wait_idle(qtbot, ws)
+    assert ws.poser is not None
