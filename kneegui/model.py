@@ -41,6 +41,47 @@ NODES_PER_ELEMENT: dict[str, int] = {
     "discrete": 2,
 }
 ELEMENT_TYPES: tuple[str, ...] = tuple(NODES_PER_ELEMENT)
+
+_HEX_EDGES = (
+    (0, 1),
+    (1, 2),
+    (2, 3),
+    (3, 0),
+    (4, 5),
+    (5, 6),
+    (6, 7),
+    (7, 4),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+)
+#: Edges of each element type as pairs of local node numbers (this module's node order); a
+#: 10-node tet's edges run through its mid-edge nodes.
+ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
+    "hex8": _HEX_EDGES,
+    "wedge6": ((0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)),
+    "pyramid5": ((0, 1), (1, 2), (2, 3), (3, 0), (0, 4), (1, 4), (2, 4), (3, 4)),
+    "tet4": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
+    "tet10": (
+        (0, 4),
+        (4, 1),
+        (1, 5),
+        (5, 2),
+        (2, 6),
+        (6, 0),
+        (0, 7),
+        (7, 3),
+        (1, 8),
+        (8, 3),
+        (2, 9),
+        (9, 3),
+    ),
+    "quad4": ((0, 1), (1, 2), (2, 3), (3, 0)),
+    "tri3": ((0, 1), (1, 2), (2, 0)),
+    "beam2": ((0, 1),),
+    "discrete": ((0, 1),),
+}
 SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4", "tet10")
 SHELL_TYPES: tuple[str, ...] = ("quad4", "tri3")
 LINE_TYPES: tuple[str, ...] = ("beam2", "discrete")
@@ -322,20 +363,7 @@ def _wedge_patterns() -> list[tuple[tuple[int, int], tuple[int, int], tuple[int,
             fa, fb = tri_faces
             assert opposite[fa] == fb
             # map each node of face fa to its neighbour on face fb along the connecting edges
-            edges = {
-                (0, 4),
-                (1, 5),
-                (2, 6),
-                (3, 7),
-                (0, 1),
-                (1, 2),
-                (2, 3),
-                (3, 0),
-                (4, 5),
-                (5, 6),
-                (6, 7),
-                (7, 4),
-            }
+            edges = set(_HEX_EDGES)
             edges |= {(b, a) for a, b in edges}
             fa_nodes, fb_nodes = faces[fa], faces[fb]
             partner = {a: next(b for b in fb_nodes if (a, b) in edges) for a in fa_nodes}
@@ -378,22 +406,8 @@ def split_degenerate_solids(
     conn8 = np.asarray(conn8)
     m = len(conn8)
     # every degenerate pattern merges at least one hex edge: count distinct nodes only there
-    edges = (
-        (0, 1),
-        (1, 2),
-        (2, 3),
-        (3, 0),
-        (4, 5),
-        (5, 6),
-        (6, 7),
-        (7, 4),
-        (0, 4),
-        (1, 5),
-        (2, 6),
-        (3, 7),
-    )
     merged = np.zeros(m, dtype=bool)
-    for a, b in edges:
+    for a, b in _HEX_EDGES:
         merged |= conn8[:, a] == conn8[:, b]
     n_distinct = np.full(m, 8, dtype=np.int64)
     rows_merged = np.flatnonzero(merged)

@@ -26,6 +26,7 @@ from scipy.sparse.linalg import cg
 
 from kneegui.demo.design import DemoDesign, smoothstep
 from kneegui.demo.layout import Layout
+from kneegui.model import ELEMENT_EDGES
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -629,7 +630,7 @@ def _flexion_weights(design, lay, ix, zn, labels, conn, k_mt, k_fb) -> FloatArra
         fixed[nodes] = True
         value[nodes] = w
     # harmonic interpolation on the lattice graph (ring nodes between the fixed ones)
-    edges = np.sort(np.concatenate([conn[:, [a, b]] for a, b in _HEX_EDGES]), axis=1)
+    edges = np.sort(np.concatenate([conn[:, [a, b]] for a, b in ELEMENT_EDGES["hex8"]]), axis=1)
     code = np.unique(edges[:, 0] * np.int64(n) + edges[:, 1])
     edges = np.column_stack([code // n, code % n])
     free = np.flatnonzero(~fixed)
@@ -660,22 +661,6 @@ def _flexion_weights(design, lay, ix, zn, labels, conn, k_mt, k_fb) -> FloatArra
     sol, _info = cg(lap, rhs, x0=guess, rtol=1e-9, maxiter=5000)
     value[free] = np.clip(sol, 0.0, 1.0)
     return value
-
-
-_HEX_EDGES = (
-    (0, 1),
-    (1, 2),
-    (2, 3),
-    (3, 0),
-    (4, 5),
-    (5, 6),
-    (6, 7),
-    (7, 4),
-    (0, 4),
-    (1, 5),
-    (2, 6),
-    (3, 7),
-)
 
 
 def _shells(lay: Layout, ix: _Index, conn: IntArray, labels: IntArray) -> dict:

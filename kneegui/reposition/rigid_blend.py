@@ -20,48 +20,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
-from kneegui.model import ElementBlock
+from kneegui.model import ELEMENT_EDGES, ElementBlock
 
 _SMALL = 1e-9
-
-#: Element edges (pairs of local node numbers) per element type, for the mesh graph.
-ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
-    "hex8": (
-        (0, 1),
-        (1, 2),
-        (2, 3),
-        (3, 0),
-        (4, 5),
-        (5, 6),
-        (6, 7),
-        (7, 4),
-        (0, 4),
-        (1, 5),
-        (2, 6),
-        (3, 7),
-    ),
-    "wedge6": ((0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)),
-    "pyramid5": ((0, 1), (1, 2), (2, 3), (3, 0), (0, 4), (1, 4), (2, 4), (3, 4)),
-    "tet4": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
-    "tet10": (
-        (0, 4),
-        (4, 1),
-        (1, 5),
-        (5, 2),
-        (2, 6),
-        (6, 0),
-        (0, 7),
-        (7, 3),
-        (1, 8),
-        (8, 3),
-        (2, 9),
-        (9, 3),
-    ),
-    "quad4": ((0, 1), (1, 2), (2, 3), (3, 0)),
-    "tri3": ((0, 1), (1, 2), (2, 0)),
-    "beam2": ((0, 1),),
-    "discrete": ((0, 1),),
-}
 
 
 def mesh_edges(blocks: Mapping[str, ElementBlock], element_masks: Mapping[str, NDArray]) -> NDArray:
