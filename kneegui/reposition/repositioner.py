@@ -385,11 +385,16 @@ class Repositioner:
         return solve_bone_pose(self.axes, self.setup, float(flexion_deg))
 
     def pose(self, flexion_deg: float) -> NDArray[np.float64]:
-        """All node coordinates (N, 3) at ``flexion_deg`` (a new array)."""
-        return self.pose_detailed(flexion_deg).coords
+        """All node coordinates (N, 3) at ``flexion_deg`` (a new array); the cheap slider step."""
+        return self.pose_detailed(flexion_deg, remeasure=False).coords
 
-    def pose_detailed(self, flexion_deg: float) -> PoseResult:
-        """All node coordinates at ``flexion_deg``, with the bone pose, skin report and timings."""
+    def pose_detailed(self, flexion_deg: float, remeasure: bool = True) -> PoseResult:
+        """All node coordinates at ``flexion_deg``, with the bone pose, skin report and timings.
+
+        With ``remeasure`` the achieved flexion is measured again from the posed coordinates (the
+        anatomical axes through the landmarks, as for the initial model); otherwise it is the
+        bone solver's own measure of the transforms, which is much cheaper.
+        """
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         bone = self.bone_pose(flexion_deg)
@@ -445,7 +450,7 @@ class Repositioner:
             t4 = time.perf_counter()
             self._contact.resolve(out, tr)
             timings["contact"] = time.perf_counter() - t4
-        achieved = measure_flexion(out, self.setup)
+        achieved = measure_flexion(out, self.setup) if remeasure else bone.measured_flexion_deg
         timings["total"] = time.perf_counter() - t0
         return PoseResult(out, float(flexion_deg), float(achieved), bone, skin_report, timings)
 
