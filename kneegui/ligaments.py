@@ -22,33 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import GeometryError
-from kneegui.model import Model
-
-#: Edges of each element type as pairs of node positions (this package's node order).
-ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
-    "hex8": (
-        (0, 1),
-        (1, 2),
-        (2, 3),
-        (3, 0),
-        (4, 5),
-        (5, 6),
-        (6, 7),
-        (7, 4),
-        (0, 4),
-        (1, 5),
-        (2, 6),
-        (3, 7),
-    ),
-    "wedge6": ((0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)),
-    "pyramid5": ((0, 1), (1, 2), (2, 3), (3, 0), (0, 4), (1, 4), (2, 4), (3, 4)),
-    "tet4": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
-    "tet10": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
-    "quad4": ((0, 1), (1, 2), (2, 3), (3, 0)),
-    "tri3": ((0, 1), (1, 2), (2, 0)),
-    "beam2": ((0, 1),),
-    "discrete": ((0, 1),),
-}
+from kneegui.model import ELEMENT_EDGES, Model
 
 #: Short names recognised in part titles, in the order they are tried.
 _SHORT_NAMES: tuple[tuple[str, str], ...] = (
