@@ -266,10 +266,8 @@ def run_from_args(args: argparse.Namespace, log=print) -> int:
     else:
         results = run_benchmarks(args, log)
     paths = write_outputs(results, Path(out_dir), bool(results["config"]["quick"]))
-    log(
-        f"[bench] done in {results['duration_s']:.0f} s; wrote "
-        + ", ".join(str(p) for p in paths.values())
-    )
+    done = "report regenerated" if args.report_only else f"done in {results['duration_s']:.0f} s"
+    log(f"[bench] {done}; wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
 
 

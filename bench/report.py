@@ -505,7 +505,8 @@ def machine_lines(results: dict) -> list[str]:
         f"{m['cpu']}, {m['cores']} cores, {m['memory_gb']} GB; {m['os']}; Python {m['python']}, "
         f"numpy {m['numpy']}, scipy {m['scipy']}. Run started {results['started_utc']}, took "
         f"{results['duration_s']:.0f} s; repeats {cfg['repeats']} (cheap stages), "
-        f"{cfg['heavy_repeats']} (precompute, smoothing); load average at start "
+        f"{cfg['heavy_repeats']} (smoothing, and precompute above paper scale); load average at "
+        "start "
         f"{results.get('load_average_start', 'n/a')} (other processes may share the CPU).",
         "",
     ]
