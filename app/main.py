@@ -52,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     app.setOrganizationName(ORGANIZATION)
     app.setApplicationName(APPLICATION)
     window = MainWindow()
+    if args.screenshot:
+        window.ws.autosave_enabled = False  # nobody to ask: leave any autosave as it is
     window.show()
     status = {"code": 0}
 

@@ -2,7 +2,8 @@
 
 Errors from any action are caught at one boundary (:meth:`MainWindow.guard` and the workspace's
 ``error`` signal) and shown in a non-blocking dialog naming the file and line; a failed open
-keeps the previous model.
+keeps the previous model. A deck with an autosaved setup (left by a crash) is offered back in a
+question (:meth:`MainWindow.offer_restore`).
 """
 
 from __future__ import annotations
@@ -73,6 +74,10 @@ class MainWindow(QMainWindow):
         self.settings = app_settings()
         self.last_error: str | None = None
         self.error_dialog: QMessageBox | None = None
+        #: Answers the "restore the autosaved setup?" question instead of a dialog when set:
+        #: ``fn(deck path, autosave path) -> bool`` (tests).
+        self.restore_answer: Callable[[Path, Path], bool] | None = None
+        self.restore_dialog: QMessageBox | None = None
         self.viewport = Viewport(self.ws, self)
         self.setCentralWidget(self.viewport)
         self.model_panel = ModelPanel(self.ws)
@@ -93,6 +98,7 @@ class MainWindow(QMainWindow):
         self._build_actions()
         self.quality_panel.zoom_requested.connect(self.viewport.zoom_to_element)
         self.ws.error.connect(self.show_error)
+        self.ws.autosave_found.connect(self.offer_restore)
         self.ws.status.connect(lambda text: self.statusBar().showMessage(text, 8000))
         self.ws.tasks.started.connect(self._task_started)
         self.ws.tasks.progress.connect(self._task_progress)
@@ -195,6 +201,40 @@ class MainWindow(QMainWindow):
         )
         box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
         self.error_dialog = box
+        box.open()
+
+    def offer_restore(self, autosave: Path) -> None:
+        """Ask whether to restore the autosaved setup of the deck just opened (non-blocking).
+
+        Yes loads it like Open setup… (a bad file shows the usual error dialog); No drops it.
+        """
+        deck = self.ws.deck_path
+        if deck is None:
+            return
+
+        def answer(restore: bool) -> None:
+            if self.ws.deck_path != deck:
+                return  # another deck was opened meanwhile
+            if restore:
+                self.guard(self.ws.restore_autosave)
+            else:
+                self.ws.decline_autosave()
+
+        if self.restore_answer is not None:
+            answer(bool(self.restore_answer(deck, Path(autosave))))
+            return
+        box = QMessageBox(
+            QMessageBox.Icon.Question,
+            "Restore autosaved setup",
+            f"The setup of {deck.name} was being edited when kneegui last stopped without saving "
+            f"it.\n\nRestore those edits? (No discards them.)\n\nAutosave: {autosave}",
+            QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
+            self,
+        )
+        box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        yes = box.button(QMessageBox.StandardButton.Yes)
+        box.finished.connect(lambda _result: answer(box.clickedButton() is yes))  # Esc: No
+        self.restore_dialog = box
         box.open()
 
     # ------------------------------------------------------------------ file actions
@@ -325,6 +365,7 @@ class MainWindow(QMainWindow):
 
     def closeEvent(self, event) -> None:
         self.save_layout()
+        self.ws.close_deck()  # a normal close: only a crash leaves the autosave behind
         self.ws.shutdown(5000)
         self.viewport.plotter.close()
         super().closeEvent(event)

@@ -5,6 +5,10 @@ Long work (reading a deck, precomputing the repositioner, smoothing, export, lig
 runs through :attr:`Workspace.tasks` in a worker thread. Engine errors propagate out of the
 methods called from the GUI (they are shown at one boundary, see ``MainWindow.guard``); errors of
 background tasks are emitted through :attr:`Workspace.error`.
+
+Every setup edit of a deck read from disk is autosaved (debounced, atomic) to
+:func:`app.autosave.autosave_path`; a clean save or a normal close removes the file, and opening a
+deck that has one emits :attr:`Workspace.autosave_found` so the window can offer it back.
 """
 
 from __future__ import annotations
@@ -19,9 +23,11 @@ import numpy as np
 from numpy.typing import NDArray
 from PySide6.QtCore import QObject, QTimer, Signal
 
+from app.autosave import AUTOSAVE_DELAY_MS, autosave_path
 from app.poser import Poser, make_poser
 from kneegui.errors import GeometryError, KneeguiError, SetupError
 from kneegui.geometry import JointAxes, compute_joint_axes
+from kneegui.io.atomic import atomic_write_text
 from kneegui.ligaments import Ligament, length_curve, ligament_fibres
 from kneegui.model import Model
 from kneegui.quality import QualityEvaluator, QualityResult
@@ -61,6 +67,8 @@ class Workspace(QObject):
     error(object) : a background task failed (the exception)
     status(str) : a one-line message for the status bar
     live_idle : the last requested slider pose is shown
+    autosave_found(object) : the deck just opened has an autosaved setup (its path) differing
+        from the one loaded; :meth:`restore_autosave` loads it, :meth:`discard_autosave` drops it
     """
 
     model_changed = Signal()
@@ -73,6 +81,7 @@ class Workspace(QObject):
     error = Signal(object)
     status = Signal(str)
     live_idle = Signal()
+    autosave_found = Signal(object)
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -111,6 +120,13 @@ class Workspace(QObject):
         self._poser_stale = False
         self.tasks.finished.connect(lambda _name: QTimer.singleShot(0, self.on_task_finished))
         self._live = LivePoser(self)
+        #: False: no autosave is written, offered or removed (``--screenshot`` runs)
+        self.autosave_enabled = True
+        self._autosave_held = False  # an offered autosave is not overwritten until answered
+        self._autosave_timer = QTimer(self)
+        self._autosave_timer.setSingleShot(True)
+        self._autosave_timer.setInterval(AUTOSAVE_DELAY_MS)
+        self._autosave_timer.timeout.connect(self.write_autosave)
 
     # ------------------------------------------------------------------ loading
     def load(
@@ -128,6 +144,7 @@ class Workspace(QObject):
         if isinstance(setup, str | Path):
             setup_path = Path(setup)
             setup = read_setup_json(setup_path)
+        self._leave_deck(deck_path)
         self.model = model
         self.deck_path = None if deck_path is None else Path(deck_path)
         self.setup_path = None if setup_path is None else Path(setup_path)
@@ -155,6 +172,7 @@ class Workspace(QObject):
         self.setup_changed.emit()
         self.coords_changed.emit()
         self.rebuild_poser()
+        self._check_autosave()
 
     def open_deck(self, path: str | Path, setup_path: str | Path | None = None) -> None:
         """Read a deck (and setup) in the worker thread; on success it becomes current."""
@@ -180,23 +198,126 @@ class Workspace(QObject):
         if self.model is None:
             raise SetupError("open a deck first")
         path = Path(path)
+        checked = self._read_checked_setup(path)
+        self._push_undo()
+        self.setup_path = path
+        self.setup_dict = checked
+        self._after_setup_edit()
+
+    def _read_checked_setup(self, path: Path) -> dict[str, Any]:
+        assert self.model is not None
         data = read_setup_json(path)
         try:
             checked = load_setup(data, self.model)
         except SetupError as exc:  # name the file as well as the key
             raise SetupError(exc.message, key=exc.key, path=path) from None
-        self._push_undo()
-        self.setup_path = path
-        self.setup_dict = checked.to_dict()
-        self._after_setup_edit()
+        return checked.to_dict()
 
     def save_setup(self, path: str | Path) -> Path:
-        """Write the current setup dictionary (atomically)."""
+        """Write the current setup dictionary (atomically); the autosave is then dropped."""
         from kneegui.setup import save_setup
 
         out = save_setup(self.setup_dict, path)
         self.setup_path = Path(out)
+        self.discard_autosave()
         return Path(out)
+
+    # ------------------------------------------------------------------ autosave
+    @property
+    def autosave_file(self) -> Path | None:
+        """The autosave file of the current deck (None for a model not read from a deck)."""
+        if self.deck_path is None or not self.autosave_enabled:
+            return None
+        return autosave_path(self.deck_path)
+
+    def write_autosave(self) -> Path | None:
+        """Write the setup being edited to :attr:`autosave_file` now (atomically).
+
+        Called by a 1 s single-shot timer restarted by every setup edit. A failed write is
+        reported in the status bar and never interrupts editing. While the autosave found at
+        opening is still being offered it is left as it is (and the write retried later).
+        """
+        self._autosave_timer.stop()
+        target = self.autosave_file
+        if target is None:
+            return None
+        if self._autosave_held:
+            self._autosave_timer.start()
+            return None
+        try:
+            atomic_write_text(target, json.dumps(self.setup_dict, indent=1) + "\n")
+        except (OSError, TypeError, ValueError) as exc:
+            self.status.emit(f"autosave failed: {exc}")
+            return None
+        return target
+
+    def discard_autosave(self) -> None:
+        """Forget the autosave of the current deck (clean save, normal close, declined offer)."""
+        self._autosave_timer.stop()
+        self._autosave_held = False
+        target = self.autosave_file
+        if target is not None:
+            try:
+                target.unlink(missing_ok=True)
+            except OSError as exc:
+                self.status.emit(f"could not remove the autosave: {exc}")
+
+    def restore_autosave(self) -> None:
+        """Load the autosaved setup of the current deck, as :meth:`open_setup` loads a file.
+
+        A bad or invalid autosave raises :class:`SetupError` naming the file; nothing changes
+        then and the file stays until the next edit overwrites it. The restore is one undo step.
+        """
+        target = self.autosave_file
+        self._autosave_held = False
+        if self.model is None or target is None or not target.is_file():
+            raise SetupError("there is no autosaved setup for this deck")
+        checked = self._read_checked_setup(target)
+        self._push_undo()
+        self.setup_dict = checked
+        self._after_setup_edit()
+        self.status.emit(f"restored the autosaved setup ({target})")
+
+    def decline_autosave(self) -> None:
+        """Drop the autosave offered at opening; edits made since are autosaved again."""
+        edited = self.can_undo
+        self.discard_autosave()
+        if edited and self.autosave_file is not None:
+            self._autosave_timer.start()
+
+    def close_deck(self) -> None:
+        """A normal close of the deck (window closed, another deck opened): its autosave goes,
+        unless it is the one found at opening and still unanswered."""
+        if self._autosave_held:
+            self._autosave_timer.stop()
+            self._autosave_held = False
+        else:
+            self.discard_autosave()
+
+    def _leave_deck(self, new_deck: str | Path | None) -> None:
+        """Before another model becomes current: :meth:`close_deck`, unless the same deck is
+        opened again (then its pending autosave is written, and offered)."""
+        if self.deck_path is None:
+            return
+        same = new_deck is not None and Path(new_deck).resolve() == self.deck_path.resolve()
+        if not same:
+            self.close_deck()
+        elif self._autosave_timer.isActive():
+            self.write_autosave()
+
+    def _check_autosave(self) -> None:
+        target = self.autosave_file
+        if target is None or not target.is_file():
+            return
+        try:
+            same = json.loads(target.read_text(encoding="utf-8")) == self.setup_dict
+        except (OSError, ValueError):
+            same = False  # offered all the same: restoring names the problem
+        if same:
+            self.discard_autosave()
+        else:
+            self._autosave_held = True
+            self.autosave_found.emit(target)
 
     # ------------------------------------------------------------------ setup and poser
     def _validate_setup(self) -> None:
@@ -244,6 +365,8 @@ class Workspace(QObject):
         self._start("Preparing the repositioner", work, done)
 
     def _after_setup_edit(self) -> None:
+        if self.autosave_file is not None:
+            self._autosave_timer.start()
         self._validate_setup()
         self.setup_changed.emit()
         self._emit_undo()

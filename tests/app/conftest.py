@@ -20,12 +20,13 @@ DEMO_ELEMENTS = 2000
 
 @pytest.fixture(scope="session", autouse=True)
 def isolated_settings(tmp_path_factory):
-    """Settings and the demo cache go to a temporary folder, never the user's."""
+    """Settings, the demo cache and autosaves go to a temporary folder, never the user's."""
     from PySide6.QtCore import QSettings
 
     root = tmp_path_factory.mktemp("gui-settings")
     QSettings.setPath(QSettings.Format.IniFormat, QSettings.Scope.UserScope, str(root))
     os.environ["KNEEGUI_CACHE_DIR"] = str(root / "cache")
+    os.environ["KNEEGUI_DATA_DIR"] = str(root / "data")  # autosaves
     yield root
 
 

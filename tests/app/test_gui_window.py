@@ -429,6 +429,7 @@ def test_command_line_screenshot(leg_files, tmp_path):
         os.environ,
         XDG_CONFIG_HOME=str(tmp_path / "config"),
         KNEEGUI_CACHE_DIR=str(tmp_path / "cache"),
+        KNEEGUI_DATA_DIR=str(tmp_path / "data"),
         QT_API="pyside6",
     )
     proc = subprocess.run(
