@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QByteArray, QPoint, QSettings, Qt
+from PySide6.QtCore import QBuffer, QByteArray, QIODevice, QPoint, QSettings, Qt
 from PySide6.QtGui import QAction, QImage, QKeySequence, QPainter
 from PySide6.QtWidgets import (
     QDockWidget,
@@ -31,6 +31,7 @@ from app.qt_compat import protect_singletons
 from app.viewport import CAMERA_PRESETS, Viewport
 from app.workspace import ExportBlocked, Workspace
 from kneegui.errors import DeckError, SetupError
+from kneegui.io.atomic import atomic_write_bytes
 
 ORGANIZATION = "kneegui"
 APPLICATION = "kneegui-gui"
@@ -322,10 +323,11 @@ class MainWindow(QMainWindow):
             painter.drawImage(origin, target)
             painter.end()
         out = Path(path)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if not image.save(str(out), "PNG"):
-            raise OSError(f"could not write {out}")
-        return out
+        buffer = QBuffer()
+        buffer.open(QIODevice.OpenModeFlag.WriteOnly)
+        if not image.save(buffer, "PNG"):
+            raise OSError(f"could not encode the screenshot for {out}")
+        return atomic_write_bytes(out, bytes(buffer.data()))
 
     # ------------------------------------------------------------------ recent / layout
     def _last_dir(self) -> str:

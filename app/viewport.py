@@ -566,10 +566,6 @@ class Viewport(QWidget):
         self.plotter.reset_camera_clipping_range()
         self.render()
 
-    def screenshot(self, path) -> None:
-        """Save the 3-D view as a PNG."""
-        self.plotter.screenshot(str(path))
-
     # ------------------------------------------------------------------ picking
     def pickable_parts(self) -> list[int]:
         """Parts the current pick target may pick on (visible ones)."""

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from kneegui.io.atomic import atomic_write_text
 from kneegui.model import SOLID_TYPES
 from kneegui.quality import (
     compute_quality,
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     summary["gate"] = {"passed": not reasons, "reasons": reasons}
     payload = jsonable(summary)
     if args.out:
-        Path(args.out).write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
+        atomic_write_text(args.out, json.dumps(payload, indent=2) + "\n")
     if args.json:
         print(json.dumps(payload, indent=2))
     else:

@@ -13,6 +13,7 @@ from kneegui.demo.design import DemoDesign
 from kneegui.demo.layout import Layout, make_layout
 from kneegui.demo.sliding import detach_soft_tissue
 from kneegui.errors import KneeguiError
+from kneegui.io.atomic import atomic_write_text
 from kneegui.model import ElementBlock, Model, NodeSet, Part
 
 DECK_NAME = "demo_leg.k"
@@ -384,5 +385,5 @@ def write_demo(
     )
     setup_path = out / SETUP_NAME
     setup = dict(leg.setup, model=DECK_NAME)
-    setup_path.write_text(setup_to_json(setup), encoding="utf-8")
+    atomic_write_text(setup_path, setup_to_json(setup))
     return deck, setup_path
