@@ -81,7 +81,7 @@ def test_pose_at_the_initial_angle_passes_and_reports(demo_files, tmp_path):
 def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
     deck, setup = demo_files
     out = tmp_path / "angles"
-    result = kneegui(
+    argv = [
         "pose",
         str(deck),
         "--setup",
@@ -92,26 +92,13 @@ def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
         "--out",
         str(out),
         "--no-smooth",
-        cwd=tmp_path,
-    )
+    ]
+    result = kneegui(*argv, cwd=tmp_path)
     # the demo's worst Jacobian drops below the initial one: the gate fails, nothing written
     assert result.returncode == 3, result.stdout + result.stderr
     assert "fails the quality gate" in result.stdout
     assert not any(out.glob("flex_*/*.k"))
-    result = kneegui(
-        "pose",
-        str(deck),
-        "--setup",
-        str(setup),
-        "--flexion",
-        "30",
-        "60",
-        "--out",
-        str(out),
-        "--no-smooth",
-        "--force",
-        cwd=tmp_path,
-    )
+    result = kneegui(*argv, "--force", cwd=tmp_path)
     assert result.returncode == 3
     for angle in ("30", "60"):
         posed = read_deck(out / f"flex_{angle}" / "demo_leg.k")
