@@ -82,6 +82,15 @@ ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
     "beam2": ((0, 1),),
     "discrete": ((0, 1),),
 }
+#: Faces of each solid type as local node cycles, outward for a positive element (a 10-node
+#: tet's faces by their corner nodes).
+SOLID_FACES: dict[str, tuple[tuple[int, ...], ...]] = {
+    "hex8": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
+    "wedge6": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
+    "pyramid5": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
+    "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
+    "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
+}
 SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4", "tet10")
 SHELL_TYPES: tuple[str, ...] = ("quad4", "tri3")
 LINE_TYPES: tuple[str, ...] = ("beam2", "discrete")

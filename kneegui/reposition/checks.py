@@ -13,49 +13,23 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.model import SHELL_TYPES, Model
-
-_FACES = {
-    "hex8": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
-    "wedge6": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
-    "pyramid5": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
-    "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-    "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-}
+from kneegui.model import Model
+from kneegui.smoothing.topology import boundary_faces
 
 
 def surface_triangles(model: Model, part_ids: Iterable[int], shells: bool = True) -> NDArray:
     """(T, 3) node-index triangles of the outer surface of the given parts' solids (faces used
-    once), plus their shells when ``shells`` is true."""
-    wanted = np.array(sorted(set(int(p) for p in part_ids)), dtype=np.int64)
-    faces4, faces3 = [], []
-    for etype, block in model.blocks.items():
-        mask = np.isin(block.part_ids, wanted)
-        if not mask.any():
-            continue
-        conn = block.conn[mask]
-        if etype in SHELL_TYPES:
-            if shells:
-                (faces4 if etype == "quad4" else faces3).append(conn)
-            continue
-        for face in _FACES.get(etype, ()):
-            (faces4 if len(face) == 4 else faces3).append(conn[:, list(face)])
-    tris = []
-    for group, k in ((faces4, 4), (faces3, 3)):
-        if not group:
-            continue
-        f = np.concatenate(group)
-        key = np.sort(f, axis=1)
-        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        once = counts[inverse.reshape(-1)] == 1
-        f = f[once]
-        if k == 4:
-            tris += [f[:, [0, 1, 2]], f[:, [0, 2, 3]]]
-        else:
-            tris.append(f)
-    if not tris:
-        return np.zeros((0, 3), dtype=np.int64)
-    return np.concatenate(tris)
+    once, outward), plus their shells when ``shells`` is true."""
+    wanted = sorted(set(int(p) for p in part_ids))
+    quads, tris = boundary_faces(model.blocks, wanted)
+    quad_list, tri_list = [quads], [tris]
+    if shells:
+        for etype, group in (("quad4", quad_list), ("tri3", tri_list)):
+            block = model.blocks.get(etype)
+            if block is not None:
+                group.append(block.conn[np.isin(block.part_ids, wanted)])
+    quads, tris = np.concatenate(quad_list), np.concatenate(tri_list)
+    return np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]], tris]).astype(np.int64)
 
 
 def crossings_along_ray(

@@ -30,16 +30,7 @@ from numpy.typing import NDArray
 from kneegui.errors import GeometryError, SetupError
 from kneegui.geometry.circle_fit import fit_circle_2d
 from kneegui.geometry.transforms import unit
-from kneegui.model import SHELL_TYPES, Model
-
-#: Faces of each solid type as node positions (triangles padded with -1).
-_SOLID_FACES: dict[str, list[tuple[int, ...]]] = {
-    "hex8": [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)],
-    "wedge6": [(0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)],
-    "pyramid5": [(0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)],
-    "tet4": [(0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)],
-    "tet10": [(0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)],
-}
+from kneegui.model import SHELL_TYPES, SOLID_FACES, Model
 
 
 def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.int64]:
@@ -58,8 +49,8 @@ def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.in
         conn = block.conn[mask]
         if etype in SHELL_TYPES:
             nodes.append(conn.reshape(-1))
-        elif etype in _SOLID_FACES:
-            for face in _SOLID_FACES[etype]:
+        elif etype in SOLID_FACES:
+            for face in SOLID_FACES[etype]:
                 f = conn[:, list(face)]
                 if f.shape[1] == 3:
                     f = np.column_stack([f, np.full(len(f), -1)])

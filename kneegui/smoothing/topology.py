@@ -7,28 +7,12 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.model import ElementBlock
+from kneegui.model import ELEMENT_EDGES as MODEL_EDGES
+from kneegui.model import SOLID_FACES, ElementBlock
 
-#: Edges of each element type, as local corner-node pairs.
+#: Edges of the element types the smoother works on, as local corner-node pairs.
 ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
-    "hex8": (
-        (0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
-        (0, 4), (1, 5), (2, 6), (3, 7),
-    ),
-    "wedge6": ((0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)),
-    "pyramid5": ((0, 1), (1, 2), (2, 3), (3, 0), (0, 4), (1, 4), (2, 4), (3, 4)),
-    "tet4": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
-    "quad4": ((0, 1), (1, 2), (2, 3), (3, 0)),
-    "tri3": ((0, 1), (1, 2), (2, 0)),
-}  # fmt: skip
-
-#: Faces of each solid type with outward normals for a positive element (local node cycles).
-SOLID_FACES: dict[str, tuple[tuple[int, ...], ...]] = {
-    "hex8": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
-    "wedge6": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
-    "pyramid5": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
-    "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-    "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
+    t: MODEL_EDGES[t] for t in ("hex8", "wedge6", "pyramid5", "tet4", "quad4", "tri3")
 }
 
 
