@@ -335,6 +335,31 @@ def build_grid(design: DemoDesign, lay: Layout) -> Grid:
     return Grid(lay, coords, weight, conn, labels, cell_z, shells, landmarks)
 
 
+def free_flesh_nodes(grid: Grid) -> NDArray[np.bool_]:
+    """Lattice nodes that may move without changing the anatomy, ``(n_nodes,)`` bool.
+
+    A node is free when every element around it is flesh (no bone, ligament or meniscus; the
+    joint cavity may border it) and it lies neither on the skin (outermost ring) nor on the two
+    cuts (first and last layer). Such nodes are interior to the flesh or on the capsule: moving
+    them a little changes only the shape of flesh elements (and of the capsule and patellar
+    tendon shells that lie on the flesh).
+    """
+    lay = grid.layout
+    ix = _Index(lay)
+    n = len(grid.coords)
+    in_flesh = np.zeros(n, dtype=bool)
+    elsewhere = np.zeros(n, dtype=bool)
+    flesh = grid.cell_label == FLESH
+    other = ~flesh & (grid.cell_label != VOID)
+    in_flesh[grid.cell_conn[flesh].ravel()] = True
+    elsewhere[grid.cell_conn[other].ravel()] = True
+    node = np.arange(n)
+    layer, in_layer = node // ix.per_layer, node % ix.per_layer
+    on_skin = in_layer >= ix.n_core + (lay.nr - 1) * ix.P
+    on_cut = (layer == 0) | (layer == lay.nk)
+    return in_flesh & ~elsewhere & ~on_skin & ~on_cut
+
+
 def _void_gap(design: DemoDesign, femur_bottom: FloatArray, ix: _Index) -> float:
     """Gap between meniscus top and femur: about 1/6 of the knee's perimeter cell size, >= 1 mm."""
     bnd = femur_bottom.reshape(-1, 3)[ix.perim_core]

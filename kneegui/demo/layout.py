@@ -25,11 +25,11 @@ ROW_BLOCKS = (
     ("pcl", 1, 7.5, 0.00, 0.14),
     ("ugap", 0, 4.5, 0.14, 0.22),
     ("acl", 1, 10.0, 0.22, 0.40),
-    ("wall", 1, 22.0, 0.40, 0.80),
+    ("wall", 2, 22.0, 0.40, 0.80),
     ("ant", 1, 11.0, 0.80, 1.00),
 )
 COL_BLOCKS = (
-    ("lat_rim", 0, 9.0),
+    ("lat_rim", 1, 9.0),
     ("lat_out", 1, 11.0),
     ("lat_nw", 1, 11.0),
     ("vgap1", 1, 4.0),
@@ -37,13 +37,13 @@ COL_BLOCKS = (
     ("vgap2", 1, 4.0),
     ("med_nw", 1, 11.0),
     ("med_out", 1, 14.0),
-    ("med_rim", 0, 9.0),
+    ("med_rim", 1, 9.0),
 )
-RING_BLOCKS = (("inner", 1, 12.0), ("mid", 1, 20.0), ("outer", 2, 18.0))
+RING_BLOCKS = (("inner", 1, 12.0), ("mid", 1, 20.0), ("outer", 1, 18.0))
 # (name, minimum count, nominal z start, end, size factor relative to the in-plane size)
 SLAB_BLOCKS = (
     ("calf", 0, -400.0, -140.0, 0.0),  # count from the shaft aspect rule
-    ("tibmeta", 2, -140.0, -55.0, 0.85),
+    ("tibmeta", 6, -140.0, -55.0, 0.85),
     ("tub", 2, -55.0, -40.0, 0.5),
     ("tibcond", 2, -40.0, -24.0, 0.5),
     ("men", 1, -24.0, -19.0, 1.0),
@@ -51,7 +51,7 @@ SLAB_BLOCKS = (
     ("notch1", 3, -14.0, 2.0, 0.45),
     ("notch2", 1, 2.0, 6.0, 0.45),
     ("cond", 2, 6.0, 16.0, 0.45),
-    ("pat", 3, 16.0, 45.0, 0.55),
+    ("pat", 4, 16.0, 45.0, 0.55),
     ("femmeta", 3, 45.0, 90.0, 0.8),
     ("thigh", 0, 90.0, 400.0, 0.0),
 )

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import time
 
 import numpy as np
 import pytest
 
-from kneegui.demo import PARTS, generate_demo_leg, write_demo
+from kneegui.demo import PARTS, DemoDesign, generate_demo_leg, write_demo
+from kneegui.demo import generator as demo_generator
+from kneegui.demo.generator import MIN_ELEMENTS, build_demo_leg, count_solids
 from kneegui.demo.grid import HEX_FACES, rotate_about_y
+from kneegui.demo.layout import make_layout
 from kneegui.demo.sliding import SLIDING_RADIUS_MM
 from kneegui.errors import KneeguiError
 from kneegui.geometry.axes import compute_joint_axes, measure_flexion
@@ -17,12 +21,20 @@ from kneegui.geometry.circle_fit import fit_circle_2d
 from kneegui.quality import compute_quality
 from kneegui.setup.format import ROLES, load_setup
 
-SIZES_WITH_QUALITY = (12_000, 20_000, 50_000, 100_000)
+#: Requests whose meshes must meet the quality bounds: the smallest accepted request (the coarsest
+#: mesh), requests between it and the default (repaired meshes), the default and finer ones.
+SIZES_WITH_QUALITY = (MIN_ELEMENTS, 2_000, 8_000, 10_000, 12_000, 20_000, 50_000, 100_000)
+
+
+@functools.cache
+def _leg(elements: int):
+    """One generated leg per size for the whole module (generation is deterministic)."""
+    return generate_demo_leg(elements)
 
 
 @pytest.fixture(scope="module")
 def leg():
-    return generate_demo_leg(20_000)
+    return _leg(20_000)
 
 
 @pytest.fixture(scope="module")
@@ -46,17 +58,23 @@ def test_default_size_is_near_the_papers_model(leg):
 
 
 def test_size_option_scales_the_same_anatomy():
-    small = generate_demo_leg(2_000)
-    large = generate_demo_leg(100_000)
+    small = _leg(2_000)
+    large = _leg(100_000)
     n_small = len(small.model.blocks["hex8"])
     n_large = len(large.model.blocks["hex8"])
-    assert n_small < 8_000
+    assert n_small < 7_500
     assert 85_000 <= n_large <= 115_000
     for leg in (small, large):
         counts = leg.model.element_counts()
         assert set(counts) == {s.pid for s in PARTS}
-    # the coarsest model is below the quality floor (docs/demo-leg.md) but never inverted
-    assert compute_quality(small.model.coords, small.model.blocks).n_inverted == 0
+
+
+def test_smallest_request_gives_the_coarsest_layout():
+    """Any request below the coarsest mesh returns the coarsest mesh (docs/demo-leg.md)."""
+    coarsest = count_solids(make_layout(0.05))
+    assert _leg(MIN_ELEMENTS).stats["solids"] == coarsest
+    assert _leg(2_000).stats["solids"] == coarsest
+    assert generate_demo_leg(5_000).stats["solids"] == coarsest
 
 
 def test_every_part_is_present_titled_and_has_its_element_kind(leg):
@@ -207,16 +225,67 @@ def test_joint_gap_is_not_bridged_by_flesh_or_menisci(leg):
 
 
 # ------------------------------------------------------------------------- quality
-@pytest.mark.parametrize("elements", SIZES_WITH_QUALITY)
-def test_quality_bounds(elements):
-    leg = generate_demo_leg(elements)
-    assert "quality_problems" not in leg.stats
-    q = compute_quality(leg.model.coords, leg.model.blocks)
+def _assert_quality_bounds(model):
+    q = compute_quality(model.coords, model.blocks)
     assert q.n_inverted == 0
     for etype, eq in q.by_type.items():
         assert eq.metric("jacobian_corner").min() >= 0.3, etype
         assert eq.metric("aspect").max() <= 10.0, etype
         assert eq.metric("warpage").max() <= 30.0, etype
+
+
+@pytest.mark.parametrize("elements", SIZES_WITH_QUALITY)
+def test_quality_bounds(elements):
+    leg = _leg(elements)
+    assert "quality_problems" not in leg.stats
+    _assert_quality_bounds(leg.model)
+
+
+@pytest.mark.slow
+def test_quality_bounds_hold_for_every_layout_up_to_the_default_size():
+    """Every distinct block structure from the coarsest to the default one meets the bounds
+    (after the repair where needed), so no request in that range can miss them."""
+    design = DemoDesign()
+    seen = set()
+    factor = 0.05
+    default = generate_demo_leg().layout.factor
+    checked = 0
+    while factor <= default * 1.0001:
+        layout = make_layout(factor)
+        key = (layout.rows.counts, layout.cols.counts, layout.rings.counts, layout.slabs.counts)
+        factor *= 1.02
+        if key in seen:
+            continue
+        seen.add(key)
+        leg, problems = build_demo_leg(layout, design)
+        assert problems == [], (leg.stats["solids"], problems)
+        _assert_quality_bounds(leg.model)
+        checked += 1
+    assert checked >= 15
+
+
+def test_smallest_leg_keeps_the_anatomy():
+    leg = _leg(2_000)
+    setup = load_setup(leg.setup, leg.model)
+    axes = compute_joint_axes(leg.model.coords, setup)
+    assert abs(axes.lateral_fit.radius - leg.design.lateral_radius) <= 0.3
+    assert abs(axes.medial_fit.radius - leg.design.medial_radius) <= 0.3
+    assert abs(measure_flexion(leg.model.coords, setup) - 9.0) <= 1.0
+    femur = leg.model.coords[_role_nodes(leg, "femur")]
+    assert 95.0 <= np.ptp(femur[:, 1]) <= 105.0
+    assert 370.0 <= _girth(leg, 0.0) <= 395.0
+
+
+def test_default_mesh_needs_no_repair():
+    assert _leg(20_000).stats["repaired_nodes"] == 0
+    assert _leg(2_000).stats["repaired_nodes"] > 0
+
+
+def test_a_mesh_that_misses_the_bounds_is_never_returned(monkeypatch):
+    """If no resolution near the request meets the bounds, generation fails loudly."""
+    monkeypatch.setattr(demo_generator, "quality_problems", lambda model: ["1 inverted elements"])
+    with pytest.raises(KneeguiError, match="quality bounds"):
+        generate_demo_leg(2_000)
 
 
 def test_left_leg_is_the_mirror_and_not_inverted(leg, left_leg):
