@@ -186,7 +186,7 @@ def generate_demo_leg(
     ----------
     elements : int
         Wanted number of solid (hex) elements; the nearest the block structure allows is built.
-        The coarsest model (any request up to about 7,000) has about 7,200 solids, the fewest with
+        The coarsest model (any request up to about 7,300) has about 7,200 solids, the fewest with
         every structure and the quality bounds; 20,000 is the default (the paper's model had
         about 19,000); over 1,000,000 works for benchmarks. Every returned mesh meets the
         default quality bounds (no inverted element, corner Jacobian >= 0.3, aspect <= 10,
