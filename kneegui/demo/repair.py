@@ -3,8 +3,11 @@
 The structured grid places every node by formula. At coarse resolutions a few cells (flesh at
 the corners of the O-grid, in front of the joint line) come out just below the quality bounds
 (``resources/quality_thresholds.csv``: corner Jacobian, aspect ratio, warpage). This module fixes
-them without touching the anatomy: only nodes that are free (inside the flesh: not on a bone,
-ligament, meniscus, the skin or a cut) move, and only those around failing elements.
+them without touching the anatomy: only nodes that are free (all their elements are flesh: not on
+a bone, ligament, meniscus, the skin or a cut; the caller decides, see
+:func:`kneegui.demo.grid.free_flesh_nodes`) move, and only those around failing elements. Cells
+that are not elements but must keep their shape (the joint cavity) can be given as *guards*: no
+move turns one inside out.
 
 The method is a deterministic node-by-node pattern search (Gauss-Seidel order). Each node tries a
 few trial positions (steps along x, y, z and the diagonals, and towards the centroid of its edge
