@@ -84,8 +84,9 @@ def pose_model(
     -------
     PosedModel
         The model with new coordinates (ids and connectivity unchanged) and the report: initial /
-        target / achieved flexion, quality (initial, posed, smoothed), volume change, gate,
-        timings.
+        target / achieved flexion, quality (initial, posed — after the relaxation when the
+        repositioner's options ask for it —, smoothed), what the relaxation did, volume change,
+        gate, timings.
     """
     report_progress = progress or (lambda fraction, message: None)
     model, setup = repositioner.model, repositioner.setup
@@ -94,7 +95,11 @@ def pose_model(
     initial_q = compute_quality(model.coords, model.blocks)
     timings["quality_initial"] = time.perf_counter() - t
     report_progress(0.05, "posing")
-    result = repositioner.pose_detailed(flexion_deg)
+
+    def relax_progress(fraction: float, message: str) -> None:
+        report_progress(0.05 + 0.45 * fraction, message)
+
+    result = repositioner.pose_detailed(flexion_deg, progress=relax_progress, cancel=cancel)
     timings["pose"] = result.timings_s["total"]
     posed = model.with_coords(result.coords)
     t = time.perf_counter()
@@ -108,7 +113,7 @@ def pose_model(
         from kneegui.smoothing.pipeline import smooth_posed_model
 
         def smoothing_progress(fraction: float, message: str) -> None:
-            report_progress(0.1 + 0.85 * fraction, message)
+            report_progress(0.5 + 0.45 * fraction, message)
 
         t = time.perf_counter()
         fixed_parts = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
@@ -136,6 +141,7 @@ def pose_model(
         "quality": quality,
         "volume_change": _volume_change(final, final_q, initial_q, soft_parts),
         "gate": {"passed": not reasons, "reasons": reasons},
+        "relaxation": None if result.relaxation is None else result.relaxation.to_dict(),
         "smoothing": smoothing,
         "skin": None
         if result.skin is None

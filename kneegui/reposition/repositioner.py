@@ -12,6 +12,10 @@ Methods (``RepositionOptions.method``), compared in docs/repositioning.md:
 ``"hybrid"``
     Skin by contours as in the paper; every other soft node by the rigid blend plus the
     barycentric interpolation of how far the contour skin departs from the blend.
+
+Whatever the method, :meth:`Repositioner.pose_detailed` (what the export runs) then relaxes the
+tissue the mapping degraded, untangling inverted elements and keeping tissue out of the bones
+(:mod:`kneegui.reposition.relax`); :meth:`Repositioner.pose` (the live slider) skips that.
 """
 
 from __future__ import annotations
@@ -32,6 +36,13 @@ from kneegui.model import Model
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact
 from kneegui.reposition.embedding import Embedding, embed_nodes
+from kneegui.reposition.relax import (
+    ElasticRelaxation,
+    RelaxOptions,
+    RelaxReport,
+    corner_tetrahedra,
+    shell_face_tetrahedra,
+)
 from kneegui.reposition.rigid_blend import (
     exp_twists_apply,
     harmonic_weights,
@@ -82,6 +93,16 @@ class RepositionOptions:
         Pull of tissue lying on a bone towards that bone's motion: strength (relative to the
         mean node degree), decay length from the bone surface (model units), and the distances
         from the F-E axis (in mean condyle radii) over which it fades in from zero.
+    relax : bool
+        Relax the degraded tissue after the mapping in :meth:`Repositioner.pose_detailed` (the
+        export); :meth:`Repositioner.pose` never does.
+    relax_reach : float
+        Only soft-tissue nodes within this many mean condyle radii of the F-E axis may be
+        relaxed (bounds the precompute on large models).
+    relax_region : float
+        The relaxed region reaches this many mean condyle radii around the degraded tissue.
+    relaxation : RelaxOptions
+        Parameters of the relaxation.
     contact_reach, contact_clearance
         Soft-tissue nodes within ``contact_reach`` mean condyle radii of a bone slide on it but
         are kept out of it, at their rest clearance up to ``contact_clearance`` (model units);
@@ -101,6 +122,10 @@ class RepositionOptions:
     coupling_radii: tuple[float, float] = (2.5, 4.5)
     contact_reach: float = 0.0
     contact_clearance: float = 0.5
+    relax: bool = True
+    relax_reach: float = 5.0
+    relax_region: float = 1.0
+    relaxation: RelaxOptions = field(default_factory=RelaxOptions)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -129,6 +154,7 @@ class PoseResult:
     bone_pose: BonePose
     skin: SkinPoseReport | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    relaxation: RelaxReport | None = None
 
 
 @dataclass(frozen=True)
@@ -282,9 +308,14 @@ class Repositioner:
             self._end("delaunay embedding", t)
         self._contact: BoneContact | None = None
         if self.options.contact_reach > 0:
-            t = self._stage("bone contact", 0.9)
+            t = self._stage("bone contact", 0.85)
             self._contact = self._bone_contact()
             self._end("bone contact", t)
+        self.relaxation: ElasticRelaxation | None = None
+        if self.options.relax:
+            t = self._stage("relaxation", 0.9)
+            self.relaxation = self._elastic_relaxation()
+            self._end("relaxation", t)
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -349,8 +380,9 @@ class Repositioner:
         fade = t * t * (3.0 - 2.0 * t)
         return opt.coupling_strength * np.exp(-d / opt.coupling_length) * fade
 
-    def _bone_contact(self) -> BoneContact:
-        model, setup, g = self.model, self.setup, self.groups
+    def _bone_triangles(self) -> dict[str, NDArray[np.int64]]:
+        """Outer surface triangles of each moving segment (solids' faces, else its shells)."""
+        model, setup = self.model, self.setup
         triangles = {}
         for segment, roles in (
             ("femur", ("femur",)),
@@ -360,6 +392,36 @@ class Repositioner:
             parts = setup.parts_of(*roles)
             tris = surface_triangles(model, parts, shells=False)
             triangles[segment] = tris if len(tris) else surface_triangles(model, parts)
+        return triangles
+
+    def _elastic_relaxation(self) -> ElasticRelaxation:
+        model, g = self.model, self.groups
+        soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
+        solids = {e: np.isin(b.part_ids, soft_parts) for e, b in model.blocks.items()}
+        shells = {e: solids.pop(e) for e in ("quad4", "tri3") if e in solids}
+        tets = corner_tetrahedra(model.blocks, solids)
+        face_tets, virtual = shell_face_tetrahedra(model.blocks, shells, solids, model.n_nodes)
+        axis = self.axes.fe_axis
+        rel = model.coords[g.soft] - axis.point
+        radial = rel - np.outer(rel @ axis.direction, axis.direction)
+        size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        free = g.soft[np.linalg.norm(radial, axis=1) < self.options.relax_reach * size]
+        bones = {name: model.coords[tris] for name, tris in self._bone_triangles().items()}
+        return ElasticRelaxation(
+            model.coords,
+            np.concatenate([tets, face_tets]),
+            free,
+            bones,
+            options=self.options.relaxation,
+            virtual=virtual,
+            attached=np.concatenate([g.segment[s] for s in ("femur", "tibia", "patella")]),
+            quads=model.blocks["quad4"].conn[shells["quad4"]] if "quad4" in shells else None,
+            region_radius=self.options.relax_region * size,
+        )
+
+    def _bone_contact(self) -> BoneContact:
+        model, setup, g = self.model, self.setup, self.groups
+        triangles = self._bone_triangles()
         soft_parts = np.array(setup.parts_of(*SOFT_ROLES), dtype=np.int64)
         masks = {etype: np.isin(b.part_ids, soft_parts) for etype, b in model.blocks.items()}
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
@@ -385,15 +447,25 @@ class Repositioner:
         return solve_bone_pose(self.axes, self.setup, float(flexion_deg))
 
     def pose(self, flexion_deg: float) -> NDArray[np.float64]:
-        """All node coordinates (N, 3) at ``flexion_deg`` (a new array); the cheap slider step."""
-        return self.pose_detailed(flexion_deg, remeasure=False).coords
+        """All node coordinates (N, 3) at ``flexion_deg`` (a new array); the cheap slider step
+        (no relaxation)."""
+        return self.pose_detailed(flexion_deg, remeasure=False, relax=False).coords
 
-    def pose_detailed(self, flexion_deg: float, remeasure: bool = True) -> PoseResult:
+    def pose_detailed(
+        self,
+        flexion_deg: float,
+        remeasure: bool = True,
+        relax: bool | None = None,
+        progress: ProgressCallback | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> PoseResult:
         """All node coordinates at ``flexion_deg``, with the bone pose, skin report and timings.
 
         With ``remeasure`` the achieved flexion is measured again from the posed coordinates (the
         anatomical axes through the landmarks, as for the initial model); otherwise it is the
-        bone solver's own measure of the transforms, which is much cheaper.
+        bone solver's own measure of the transforms, which is much cheaper. ``relax`` (default:
+        ``options.relax``) runs the elastic relaxation of the degraded tissue; ``progress`` and
+        ``cancel`` are passed to it.
         """
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -450,9 +522,18 @@ class Repositioner:
             t4 = time.perf_counter()
             self._contact.resolve(out, tr)
             timings["contact"] = time.perf_counter() - t4
+        relax_report = None
+        if self.options.relax if relax is None else relax:
+            if self.relaxation is None:
+                self.relaxation = self._elastic_relaxation()
+            t5 = time.perf_counter()
+            out, relax_report = self.relaxation.relax(out, tr, progress, cancel)
+            timings["relax"] = time.perf_counter() - t5
         achieved = measure_flexion(out, self.setup) if remeasure else bone.measured_flexion_deg
         timings["total"] = time.perf_counter() - t0
-        return PoseResult(out, float(flexion_deg), float(achieved), bone, skin_report, timings)
+        return PoseResult(
+            out, float(flexion_deg), float(achieved), bone, skin_report, timings, relax_report
+        )
 
     def with_options(self, **changes: Any) -> Repositioner:
         """A new repositioner with some options changed (recomputes the precompute)."""

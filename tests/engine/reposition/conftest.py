@@ -23,3 +23,16 @@ def small_setup(small_leg):
 @pytest.fixture(scope="session")
 def small_repositioner(small_leg, small_setup):
     return Repositioner(small_leg.model, small_setup, RepositionOptions())
+
+
+@pytest.fixture(scope="session")
+def small_posed(small_repositioner):
+    """``small_posed(angle)``: the relaxed pose (what the export writes), once per angle."""
+    cache = {}
+
+    def pose(angle: float):
+        if angle not in cache:
+            cache[angle] = small_repositioner.pose_detailed(angle)
+        return cache[angle]
+
+    return pose

@@ -1,0 +1,957 @@
+"""Elastic relaxation: untangle and even out the soft tissue of a pose, with bone contact.
+
+The rigid blend moves every soft-tissue node by a mix of the bones' motions. That is cheap and
+smooth, but it cannot make the tissue behind a deeply flexed knee bulge, nor keep it out of a
+condyle that is not a circle about the F-E axis, so some elements fold. This stage starts from the
+blended pose and minimises a distortion energy over the soft-tissue nodes near the joint, with the
+bones (and the tissue attached to them) held where the kinematics put them:
+
+- every solid element is cut into corner tetrahedra (the three edges through each corner, the same
+  corners as the corner Jacobian of QUALITY.md); for each, ``J`` maps the corner's initial edges to
+  its current edges, and the energy is the foldover-free distortion of Garanzha et al. (2021),
+  *Foldover-free maps in 50 lines of code*, ACM Trans. Graph. 40(4)::
+
+      f(J) = (1 - theta) |J|^2 / chi(det J)^(2/3) + theta (det J^2 + 1) / chi(det J)
+      chi(D) = (D + sqrt(eps^2 + D^2)) / 2
+
+  weighted by the corner's initial volume. The first term penalises change of shape, the second
+  change of volume; both are smallest at the initial shape (``J`` a rotation). As ``eps`` -> 0 the
+  energy becomes a barrier that no corner can cross into inversion; the schedule of ``eps`` from the
+  paper untangles corners that the blend inverted. Minimised with L-BFGS (SciPy).
+- bone contact: a soft-tissue node near a bone is kept on the outside of the bone's tangent plane at
+  its closest surface point (a quadratic penalty), with the planes recomputed from the bone
+  surfaces between the solver's rounds, so tissue slides along a condyle instead of entering it.
+
+Element count, node ids and connectivity never change; only the free nodes move.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from kneegui.errors import Cancelled
+from kneegui.geometry.transforms import RigidTransform
+from kneegui.model import ElementBlock
+
+#: Corner tetrahedra per solid type: (corner, edge end 1, edge end 2, edge end 3).
+CORNER_TETS: dict[str, tuple[tuple[int, int, int, int], ...]] = {
+    "hex8": (
+        (0, 1, 3, 4),
+        (1, 2, 0, 5),
+        (2, 3, 1, 6),
+        (3, 0, 2, 7),
+        (4, 7, 5, 0),
+        (5, 4, 6, 1),
+        (6, 5, 7, 2),
+        (7, 6, 4, 3),
+    ),
+    "wedge6": (
+        (0, 1, 2, 3),
+        (1, 2, 0, 4),
+        (2, 0, 1, 5),
+        (3, 5, 4, 0),
+        (4, 3, 5, 1),
+        (5, 4, 3, 2),
+    ),
+    "pyramid5": ((0, 1, 3, 4), (1, 2, 0, 4), (2, 3, 1, 4), (3, 0, 2, 4)),
+    "tet4": ((0, 1, 2, 3),),
+    "tet10": ((0, 1, 2, 3),),
+}
+
+ProgressCallback = Callable[[float, str], None]
+
+#: Where the virtual apex of a shell's tetrahedra sits, from the shell's centroid (0) to the
+#: centroid of the solid it covers (1).
+APEX_DEPTH = 0.3
+
+try:  # the compiled kernel (Numba); the NumPy reference is used where Numba is missing
+    from kneegui.reposition.relax_kernel import foldover_free_energy as _kernel
+except ImportError:  # pragma: no cover - numba is a dependency
+    _kernel = None
+
+
+def corner_tetrahedra(
+    blocks: Mapping[str, ElementBlock], masks: Mapping[str, NDArray[np.bool_]] | None = None
+) -> NDArray[np.int64]:
+    """(C, 4) node indices of the corner tetrahedra of the solid elements.
+
+    Parameters
+    ----------
+    blocks : mapping of element type to ElementBlock
+    masks : mapping of element type to (m,) bool, optional
+        Which elements of each block to take (default: all).
+    """
+    out = [np.zeros((0, 4), dtype=np.int64)]
+    for etype, table in CORNER_TETS.items():
+        block = blocks.get(etype)
+        if block is None or len(block.conn) == 0:
+            continue
+        conn = block.conn if masks is None else block.conn[masks[etype]]
+        out.append(conn[:, np.array(table)].reshape(-1, 4).astype(np.int64))
+    return np.concatenate(out)
+
+
+def shell_face_tetrahedra(
+    blocks: Mapping[str, ElementBlock],
+    shell_masks: Mapping[str, NDArray[np.bool_]],
+    solid_masks: Mapping[str, NDArray[np.bool_]],
+    n_nodes: int,
+) -> tuple[NDArray[np.int64], sp.csr_matrix]:
+    """Tetrahedra that keep shells lying on solid faces from folding.
+
+    For every selected shell that is a face of a selected solid, each triangle of the shell
+    (both diagonals of a quad) and an apex inside the solid make a tetrahedron; the apex lies
+    :data:`APEX_DEPTH` of the way from the shell's centroid to the solid's. The apexes are
+    *virtual nodes* numbered from ``n_nodes`` on; the returned matrix gives their positions as
+    linear combinations of the real nodes.
+
+    Returns
+    -------
+    tets : (T, 4) ndarray of int
+        Node indices; index ``n_nodes + k`` is virtual node ``k``.
+    virtual : (V, n_nodes) sparse matrix
+        ``virtual @ coords`` are the virtual nodes' coordinates.
+    """
+    from kneegui.model import SOLID_FACES
+
+    # every face of the selected solids as a sorted, -1 padded 4-tuple, with its owner
+    keys, owners, owner_types = [], [], []
+    solid_types = [e for e in SOLID_FACES if e in blocks and e in solid_masks]
+    for t_index, etype in enumerate(solid_types):
+        block = blocks[etype]
+        rows = np.flatnonzero(solid_masks[etype])
+        for face in SOLID_FACES[etype]:
+            k = np.full((len(rows), 4), -1, dtype=np.int64)
+            k[:, : len(face)] = np.sort(block.conn[np.ix_(rows, list(face))], axis=1)
+            keys.append(np.sort(k, axis=1))
+            owners.append(rows)
+            owner_types.append(np.full(len(rows), t_index))
+    shell_keys, shell_conn = [], []
+    for etype, mask in shell_masks.items():
+        block = blocks.get(etype)
+        if block is None:
+            continue
+        conn = block.conn[mask]
+        k = np.full((len(conn), 4), -1, dtype=np.int64)
+        k[:, : conn.shape[1]] = conn
+        shell_keys.append(np.sort(k, axis=1))
+        padded = np.full((len(conn), 4), -1, dtype=np.int64)
+        padded[:, : conn.shape[1]] = conn
+        shell_conn.append(padded)
+    empty = (np.zeros((0, 4), dtype=np.int64), sp.csr_matrix((0, n_nodes)))
+    if not keys or not shell_keys:
+        return empty
+    face_keys = np.concatenate(keys)
+    face_owner = np.concatenate(owners)
+    face_type = np.concatenate(owner_types)
+    s_keys = np.concatenate(shell_keys)
+    s_conn = np.concatenate(shell_conn)
+    # match shells to solid faces by their sorted node tuples
+    both = np.concatenate([face_keys, s_keys])
+    _, inverse = np.unique(both, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    face_id, shell_id = inverse[: len(face_keys)], inverse[len(face_keys) :]
+    order = np.argsort(face_id, kind="stable")
+    sorted_ids = face_id[order]
+    lo = np.searchsorted(sorted_ids, shell_id, side="left")
+    hi = np.searchsorted(sorted_ids, shell_id, side="right")
+    counts = hi - lo
+    shell_rows = np.repeat(np.arange(len(s_keys)), counts)
+    face_rows = order[np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)])]
+    if len(face_rows) == 0:
+        return empty
+    # one virtual apex per (shell, owning solid): a point inside the solid close to the shell,
+    # so that the tetrahedra also see a shell that twists or turns into a dart
+    conn = s_conn[shell_rows]
+    quad = conn[:, 3] >= 0
+    n_pairs = len(face_rows)
+    v_rows, v_cols, v_vals = [], [], []
+    for t_index, etype in enumerate(solid_types):
+        mine = np.flatnonzero(face_type[face_rows] == t_index)
+        if len(mine) == 0:
+            continue
+        solid = blocks[etype].conn[face_owner[face_rows[mine]]]
+        solid = solid[:, :4] if etype == "tet10" else solid
+        v_rows.append(np.repeat(mine, solid.shape[1]))
+        v_cols.append(solid.ravel())
+        v_vals.append(np.full(solid.size, APEX_DEPTH / solid.shape[1]))
+    for is_quad, width in ((True, 4), (False, 3)):
+        mine = np.flatnonzero(quad == is_quad)
+        v_rows.append(np.repeat(mine, width))
+        v_cols.append(conn[mine, :width].ravel())
+        v_vals.append(np.full(len(mine) * width, (1.0 - APEX_DEPTH) / width))
+    virtual = sp.csr_matrix(
+        (np.concatenate(v_vals), (np.concatenate(v_rows), np.concatenate(v_cols))),
+        shape=(n_pairs, n_nodes),
+    )
+    apex = n_nodes + np.arange(n_pairs)
+    tets = [np.column_stack([conn[~quad, 0], conn[~quad, 1], conn[~quad, 2], apex[~quad]])]
+    q, qa = conn[quad], apex[quad]
+    for a, b, c in ((0, 1, 2), (0, 2, 3), (1, 2, 3), (1, 3, 0)):
+        tets.append(np.column_stack([q[:, a], q[:, b], q[:, c], qa]))
+    return np.concatenate(tets).astype(np.int64), virtual
+
+
+def _edges(x: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    """(C, 3, 3) edge matrices: column k is x[tets[:, k+1]] - x[tets[:, 0]]."""
+    base = x[tets[:, 0]]
+    return np.stack([x[tets[:, k]] - base for k in (1, 2, 3)], axis=2)
+
+
+def _chi(det: NDArray[np.float64], eps: float) -> tuple[NDArray, NDArray]:
+    """Garanzha's regularised determinant ``(D + sqrt(eps^2 + D^2)) / 2`` and its derivative,
+    in a form that does not cancel to zero for very negative ``D``."""
+    root = np.sqrt(eps * eps + det * det)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chi = np.where(det >= 0, 0.5 * (det + root), 0.5 * eps * eps / (root - det))
+    return np.maximum(chi, 1e-300), 0.5 * (1.0 + det / root)
+
+
+def _det_and_cofactor(m: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+    """Determinants (C,) and cofactor matrices (C, 3, 3) (d det / d m) of 3x3 matrices."""
+    c0, c1, c2 = m[:, :, 0], m[:, :, 1], m[:, :, 2]
+    cof = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=2)
+    det = np.einsum("ij,ij->i", c0, cof[:, :, 0])
+    return det, cof
+
+
+@dataclass(frozen=True)
+class RelaxOptions:
+    """Parameters of the elastic relaxation.
+
+    Attributes
+    ----------
+    volume_weight : float
+        ``theta``: weight of the volume term against the shape term (0..1).
+    uniform_weights : bool
+        Every corner counts the same (the mesh quality view: a small element matters as much as
+        a large one); otherwise corners are weighted by their initial volume (the elastic view).
+    shell_weight : float
+        Weight of a quad shell corner's barrier against a solid corner's energy.
+    seed_volume_ratio, seed_shape : float
+        A corner whose volume ratio ``det J`` is below ``seed_volume_ratio`` (or above its
+        inverse) or whose shape distortion is above ``seed_shape`` seeds the relaxed region.
+    rings : int
+        How many mesh edges the region grows from its seeds.
+    max_rounds : int
+        Rounds of (update eps and contact planes, then L-BFGS).
+    iterations_per_round : int
+        L-BFGS iterations per round.
+    eps_decrease : float
+        Smallest relative decrease of ``eps`` per round (Garanzha's ``sigma`` floor, 0.1 in the
+        paper; larger untangles in fewer rounds).
+    tolerance : float
+        Relative energy decrease below which the rounds stop (once nothing is inverted).
+    contact_stiffness, untangling_contact_stiffness : float
+        Penalty stiffness of the bone contact, relative to the elastic stiffness of a node:
+        final, and while elements are still inverted. A stiff contact during untangling
+        crushes the tissue pinched between two bones; once nothing is inverted the barrier
+        keeps every element valid and the stiffness is raised 4x per round to the final one.
+    contact_force_depth : float
+        Depth (model units) beyond which the contact force stops growing.
+    contact_band : float
+        Nodes closer to a bone than this (model units) get a contact plane.
+    contact_clearance : float
+        Distance from the bone surface the contact holds nodes at (model units).
+    """
+
+    volume_weight: float = 0.5
+    uniform_weights: bool = True
+    shell_weight: float = 1.0
+    seed_volume_ratio: float = 0.3
+    seed_shape: float = 2.0
+    rings: int = 2
+    max_rounds: int = 20
+    iterations_per_round: int = 150
+    eps_decrease: float = 0.65
+    tolerance: float = 1e-4
+    contact_stiffness: float = 50.0
+    untangling_contact_stiffness: float = 3.0
+    contact_band: float = 3.0
+    contact_force_depth: float = 1.0
+    contact_clearance: float = 0.2
+
+
+@dataclass
+class RelaxReport:
+    """What the relaxation did."""
+
+    free_nodes: int = 0
+    corners: int = 0
+    rounds: int = 0
+    iterations: int = 0
+    evaluations: int = 0
+    min_det_before: float = float("nan")
+    min_det_after: float = float("nan")
+    inverted_corners_before: int = 0
+    inverted_corners_after: int = 0
+    contact_nodes: int = 0
+    deepest_penetration: float = 0.0
+    seconds: float = 0.0
+    history: list[dict[str, float]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready summary."""
+        out = dict(self.__dict__)
+        out.pop("history")
+        return out
+
+
+class BoneSurfaceDistance:
+    """Signed distance from points to a rigid bone's surface, evaluated in the bone's rest frame.
+
+    Parameters
+    ----------
+    tri_xyz : (T, 3, 3) ndarray
+        Outward-oriented surface triangles at rest.
+    """
+
+    def __init__(self, tri_xyz: NDArray[np.float64]) -> None:
+        from scipy.spatial import cKDTree
+
+        from kneegui.reposition.contact import _incident
+
+        self.tri_xyz = tri_xyz
+        flat = tri_xyz.reshape(-1, 3)
+        nodes_xyz, inverse = np.unique(flat, axis=0, return_inverse=True)
+        tris = inverse.reshape(-1, 3)
+        normal = np.cross(tri_xyz[:, 1] - tri_xyz[:, 0], tri_xyz[:, 2] - tri_xyz[:, 0])
+        self.normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        self.node_xyz = nodes_xyz
+        self.node_tris = _incident(tris, np.arange(len(nodes_xyz)))
+        self.tree = cKDTree(nodes_xyz)
+
+    def query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+        """Signed distance (M,) (+ outside), closest surface point (M, 3), unit outward normal
+        there (M, 3), for points (M, 3) in the rest frame."""
+        from kneegui.reposition.contact import closest_on_triangles
+
+        _, k = self.tree.query(p)
+        tris = self.node_tris[k]
+        m, width = tris.shape
+        d_all = np.full((m, width), np.inf)
+        q_all = np.zeros((m, width, 3))
+        for j in range(width):
+            t = tris[:, j]
+            ok = t >= 0
+            if ok.any():
+                q_all[ok, j] = closest_on_triangles(p[ok], self.tri_xyz[t[ok]])
+                d_all[ok, j] = np.linalg.norm(p[ok] - q_all[ok, j], axis=1)
+        rows = np.arange(m)
+        j_best = np.argmin(d_all, axis=1)
+        best, point = d_all[rows, j_best], q_all[rows, j_best]
+        tie = (d_all <= best[:, None] * (1 + 1e-9) + 1e-12) & (tris >= 0)
+        normals = np.where(tie[..., None], self.normal[np.maximum(tris, 0)], 0.0).sum(1)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        side = np.einsum("ij,ij->i", p - point, normals)
+        sign = np.where(side < 0, -1.0, 1.0)
+        return sign * best, point, normals
+
+
+def quad_corner_determinants(x: NDArray[np.float64], quads: NDArray[np.int64]) -> NDArray:
+    """(Q, 4) corner determinants ``((p[i+1]-p[i]) x (p[i-1]-p[i])) . n`` of quad shells, with
+    ``n = (p2 - p0) x (p3 - p1)``: the quantities whose signs the quality metrics read."""
+    p = [x[quads[:, i]] for i in range(4)]
+    n = _cross3(p[2] - p[0], p[3] - p[1])
+    return np.stack(
+        [
+            np.einsum("ij,ij->i", _cross3(p[(i + 1) % 4] - p[i], p[(i + 3) % 4] - p[i]), n)
+            for i in range(4)
+        ],
+        axis=1,
+    )
+
+
+@dataclass
+class _MinimizeResult:
+    x: NDArray[np.float64]
+    fun: float
+    nit: int
+    nfev: int
+
+
+def minimize_lbfgs(
+    fun: Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64]]],
+    x0: NDArray[np.float64],
+    max_iterations: int,
+    memory: int = 10,
+    ftol: float = 2.2e-9,
+) -> _MinimizeResult:
+    """Unconstrained L-BFGS (Nocedal & Wright, algorithm 7.4/7.5) with Armijo backtracking.
+
+    A step that meets an infinite or NaN energy (a barrier) is halved like any other rejected
+    step. SciPy's L-BFGS-B spent more time in its bound handling than this problem spends in
+    its energy; this loop costs a few vector operations per iteration.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(x) -> (f, gradient)``.
+    x0 : (n,) ndarray
+    max_iterations : int
+    memory : int
+        Number of correction pairs kept.
+    ftol : float
+        Stops when ``(f_k - f_{k+1}) / max(|f_k|, |f_{k+1}|, 1) <= ftol``.
+    """
+    x = np.array(x0, dtype=np.float64, copy=True)
+    f, g = fun(x)
+    nfev = 1
+    s_list: list[NDArray] = []
+    y_list: list[NDArray] = []
+    rho: list[float] = []
+    it = 0
+    for it in range(1, max_iterations + 1):
+        q = g.copy()
+        alpha = []
+        for s_i, y_i, r_i in zip(reversed(s_list), reversed(y_list), reversed(rho), strict=True):
+            a_i = r_i * float(s_i @ q)
+            alpha.append(a_i)
+            q -= a_i * y_i
+        if s_list:
+            q *= float(s_list[-1] @ y_list[-1]) / float(y_list[-1] @ y_list[-1])
+        else:
+            q /= max(float(np.abs(g).max()), 1.0)
+        for s_i, y_i, r_i, a_i in zip(s_list, y_list, rho, reversed(alpha), strict=True):
+            q += (a_i - r_i * float(y_i @ q)) * s_i
+        d = -q
+        slope = float(g @ d)
+        if slope >= 0:  # not a descent direction: forget the curvature pairs
+            s_list.clear(), y_list.clear(), rho.clear()
+            d = -g / max(float(np.abs(g).max()), 1.0)
+            slope = float(g @ d)
+        if slope == 0:
+            break
+        step = 1.0
+        while True:
+            x_new = x + step * d
+            f_new, g_new = fun(x_new)
+            nfev += 1
+            if np.isfinite(f_new) and f_new <= f + 1e-4 * step * slope:
+                break
+            step *= 0.5
+            if step < 1e-10:
+                return _MinimizeResult(x, f, it, nfev)
+        s_k, y_k = x_new - x, g_new - g
+        sy = float(s_k @ y_k)
+        if sy > 1e-12 * float(np.linalg.norm(s_k) * np.linalg.norm(y_k)):
+            s_list.append(s_k), y_list.append(y_k), rho.append(1.0 / sy)
+            if len(s_list) > memory:
+                s_list.pop(0), y_list.pop(0), rho.pop(0)
+        converged = (f - f_new) <= ftol * max(abs(f), abs(f_new), 1.0)
+        x, f, g = x_new, f_new, g_new
+        if converged:
+            break
+    return _MinimizeResult(x, f, it, nfev)
+
+
+def _cross3(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Row-wise cross products of (M, 3) arrays (np.cross costs more on short arrays)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _quad_energy(
+    x: NDArray[np.float64],
+    quads: NDArray[np.int64],
+    rest: NDArray[np.float64],
+    weight: float,
+    eps: float,
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """Barrier on the quads' corner determinants relative to rest: ``(r^2 + 1) / chi(r)``.
+
+    Returns the energy, the gradient per quad node (Q, 4, 3) and the ratios r (4Q,).
+    """
+    p = [x[quads[:, i]] for i in range(4)]
+    u, v = p[2] - p[0], p[3] - p[1]
+    n = _cross3(u, v)
+    grad = np.zeros((len(quads), 4, 3))
+    total = 0.0
+    ratios = []
+    for i in range(4):
+        a = p[(i + 1) % 4] - p[i]
+        b = p[(i + 3) % 4] - p[i]
+        w = _cross3(a, b)
+        r = np.einsum("ij,ij->i", w, n) / rest[:, i]
+        chi, dchi = _chi(r, eps)
+        total += weight * float(np.sum((r * r + 1.0) / chi))
+        dr = (weight * (2.0 * r / chi - (r * r + 1.0) * dchi / (chi * chi)) / rest[:, i])[:, None]
+        ga = _cross3(b, n) * dr  # d/da of (a x b) . n
+        gb = _cross3(n, a) * dr
+        gu = _cross3(v, w) * dr  # d/du of (u x v) . w
+        gv = _cross3(w, u) * dr
+        grad[:, (i + 1) % 4] += ga
+        grad[:, (i + 3) % 4] += gb
+        grad[:, i] -= ga + gb
+        grad[:, 2] += gu
+        grad[:, 0] -= gu
+        grad[:, 3] += gv
+        grad[:, 1] -= gv
+        ratios.append(r)
+    return total, grad, np.concatenate(ratios)
+
+
+class _Subproblem:
+    """The corner tetrahedra touching a set of free nodes, in local numbering: the real nodes
+    they use (and the virtual nodes need) first, then the virtual nodes."""
+
+    def __init__(self, relax: ElasticRelaxation, rows: NDArray[np.int64], free: NDArray[np.int64]):
+        n = relax.n_nodes
+        tets = relax.tets[rows]
+        is_virtual = tets >= n
+        used_virtual = np.unique(tets[is_virtual]) - n
+        v_sub = relax.virtual[used_virtual]
+        quads = relax.quads[relax.is_free_quad(free)]
+        self.nodes = np.union1d(np.union1d(np.unique(tets[~is_virtual]), v_sub.indices), quads)
+        m = len(self.nodes)
+        self.quads = np.searchsorted(self.nodes, quads).reshape(-1, 4)
+        self.quad_rest = quad_corner_determinants(relax.rest, quads.reshape(-1, 4))
+        self.quad_weight = relax.options.shell_weight
+        q_flat = self.quads.ravel()
+        self.quad_scatter = sp.csr_matrix(
+            (np.ones(len(q_flat)), (q_flat, np.arange(len(q_flat)))), shape=(m, len(q_flat))
+        )
+        self.virtual = v_sub[:, self.nodes].tocsr() if len(used_virtual) else None
+        self.virtual_t = None if self.virtual is None else self.virtual.T.tocsr()
+        local = np.empty_like(tets)
+        local[~is_virtual] = np.searchsorted(self.nodes, tets[~is_virtual])
+        local[is_virtual] = m + np.searchsorted(used_virtual, tets[is_virtual] - n)
+        self.tets = local
+        self.m = m
+        g = relax.inv_rest[rows]  # J = E @ G
+        self.g_rows = np.ascontiguousarray(g)  # (C, 3, 3) for the compiled kernel
+        self.g = np.ascontiguousarray(np.transpose(g, (1, 2, 0)))  # (3 edges, 3, C)
+        self.weight = relax.weight[rows]
+        self.theta = relax.options.volume_weight
+        self.free = np.searchsorted(self.nodes, free)  # local indices of the free nodes
+        # gradient scatter: d_edges (3 edges x C, 3) -> nodes, as one sparse product
+        c, size = len(self.tets), m + len(used_virtual)
+        cols = np.arange(3 * c)
+        ends = self.tets[:, 1:].T.ravel()  # column j * C + corner
+        plus = sp.csr_matrix((np.ones(3 * c), (ends, cols)), shape=(size, 3 * c))
+        base = np.tile(self.tets[:, 0], 3)
+        minus = sp.csr_matrix((np.ones(3 * c), (base, cols)), shape=(size, 3 * c))
+        self.scatter = (plus - minus).tocsr()
+        # diagonal of the shape term's Hessian at rest, per node: a preconditioner
+        end_sq = np.einsum("jkc,jkc->jc", self.g, self.g)
+        base_sq = np.sum(self.g.sum(axis=0) ** 2, axis=0)
+        diag = np.zeros(size)
+        np.add.at(diag, ends, np.tile(self.weight, 3) * end_sq.ravel())
+        np.add.at(diag, self.tets[:, 0], self.weight * base_sq)
+        if self.virtual_t is not None:
+            diag = diag[:m] + self.virtual_t.multiply(self.virtual_t) @ diag[m:]
+        self.diagonal = diag[:m]
+
+    def augment(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Local real coordinates (m, 3) followed by the virtual nodes' coordinates."""
+        return x if self.virtual is None else np.vstack([x, self.virtual @ x])
+
+    def energy(self, x: NDArray[np.float64], eps: float) -> tuple[float, NDArray, NDArray]:
+        """Energy, gradient (m, 3) and per-corner det J at local coordinates ``x`` (m, 3)."""
+        if _kernel is None:
+            return self.energy_numpy(x, eps)
+        xa = np.ascontiguousarray(self.augment(x))
+        grad = np.empty_like(xa)
+        det = np.empty(len(self.tets))
+        energy = _kernel(xa, self.tets, self.g_rows, self.weight, self.theta, eps, grad, det)
+        if self.virtual_t is not None:
+            grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
+        return self._add_shells(x, eps, float(energy), grad, det)
+
+    def _add_shells(self, x, eps, energy, grad, det):
+        if len(self.quads) == 0:
+            return energy, grad, det
+        e_q, g_q, r_q = _quad_energy(x, self.quads, self.quad_rest, self.quad_weight, eps)
+        grad = grad + self.quad_scatter @ g_q.reshape(-1, 3)
+        return energy + e_q, grad, np.concatenate([det, r_q])
+
+    def energy_numpy(self, x: NDArray[np.float64], eps: float) -> tuple[float, NDArray, NDArray]:
+        """:meth:`energy` in NumPy (the reference the compiled kernel is tested against).
+
+        Laid out as (component, corner) arrays so that every step is an elementwise operation
+        on long vectors.
+        """
+        theta, g, t = self.theta, self.g, self.tets
+        xt = self.augment(x).T
+        base = xt[:, t[:, 0]]
+        edges = np.stack([xt[:, t[:, k]] - base for k in (1, 2, 3)])  # (3 edges, 3 coords, C)
+        jac = sum(edges[j][:, None, :] * g[j][None, :, :] for j in range(3))  # (3, 3, C)
+        c0, c1, c2 = jac[:, 0], jac[:, 1], jac[:, 2]
+        cof = np.stack([_cross_t(c1, c2), _cross_t(c2, c0), _cross_t(c0, c1)], axis=1)
+        det = np.sum(c0 * cof[:, 0], axis=0)
+        chi, dchi = _chi(det, eps)
+        frob = np.sum(jac * jac, axis=(0, 1))
+        chi23 = chi ** (2.0 / 3.0)
+        shape = frob / chi23
+        volume = (det * det + 1.0) / chi
+        w = self.weight
+        energy = float(np.dot(w, (1.0 - theta) * shape + theta * volume))
+        d_cof = w * (
+            (1.0 - theta) * (-2.0 / 3.0) * shape * dchi / chi
+            + theta * (2.0 * det / chi - volume * dchi / chi)
+        )
+        d_jac = (w * (1.0 - theta) * 2.0 / chi23) * jac + d_cof * cof
+        # dE[j, i] = sum_k dJ[i, k] G[j, k]
+        d_edges = np.einsum("ikc,jkc->jci", d_jac, g).reshape(-1, 3)
+        grad = self.scatter @ d_edges
+        if self.virtual_t is not None:
+            grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
+        return self._add_shells(x, eps, energy, grad, det)
+
+
+def _cross_t(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cross products of (3, C) column-vector arrays."""
+    return np.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+class ElasticRelaxation:
+    """Precomputed relaxation of a model's soft tissue (see the module docstring).
+
+    Only the tissue around what the pose degraded is relaxed: corners that are inverted, flat
+    or distorted (and nodes that entered a bone) seed a region that grows ``rings`` mesh edges;
+    its free nodes move, everything else stays as posed.
+
+    Parameters
+    ----------
+    rest_coords : (N, 3) ndarray
+        Initial coordinates (the reference shapes).
+    tets : (C, 4) ndarray of int
+        Corner tetrahedra of the soft-tissue solids (:func:`corner_tetrahedra`).
+    free : (F,) ndarray of int
+        Nodes the relaxation may move; every other node stays where the pose put it.
+    bones : mapping of segment name to (T, 3, 3) ndarray, optional
+        Rest-pose outer surface triangles of each rigid segment, for contact.
+    contact_nodes : (K,) ndarray of int, optional
+        Free nodes that are kept out of the bones (default: every free node).
+    options : RelaxOptions, optional
+    virtual : (V, N) sparse matrix, optional
+        Virtual nodes ``N + k`` used by ``tets`` (:func:`shell_face_tetrahedra`).
+    attached : (A,) ndarray of int, optional
+        Nodes that move with a bone; tissue next to them may go as deep into a bone as they do.
+    quads : (Q, 4) ndarray of int, optional
+        Quad shells whose corner determinants are kept positive (skin, capsule, tendon).
+    region_radius : float
+        Besides ``options.rings`` mesh edges, the relaxed region takes every free node within
+        this distance (model units) of a seed: a fold needs room in millimetres, not in
+        elements, to unfold.
+    """
+
+    def __init__(
+        self,
+        rest_coords: NDArray[np.float64],
+        tets: NDArray[np.int64],
+        free: NDArray[np.int64],
+        bones: Mapping[str, NDArray[np.float64]] | None = None,
+        contact_nodes: NDArray[np.int64] | None = None,
+        options: RelaxOptions | None = None,
+        virtual: sp.csr_matrix | None = None,
+        attached: NDArray[np.int64] | None = None,
+        quads: NDArray[np.int64] | None = None,
+        region_radius: float = 0.0,
+    ) -> None:
+        self.options = options or RelaxOptions()
+        n = len(rest_coords)
+        self.rest = np.asarray(rest_coords, dtype=np.float64)
+        self.region_radius = float(region_radius)
+        self.virtual = sp.csr_matrix((0, n)) if virtual is None else sp.csr_matrix(virtual)
+        n_aug = n + self.virtual.shape[0]
+        free = np.unique(np.asarray(free, dtype=np.int64))
+        is_free = np.zeros(n_aug, dtype=bool)
+        is_free[free] = True
+        tets = np.asarray(tets, dtype=np.int64)
+        tets = tets[is_free[tets].any(axis=1)]
+        e0 = _edges(self.augment(rest_coords), tets)
+        det0 = np.linalg.det(e0)
+        usable = np.abs(det0) > 1e-12 * np.maximum(np.abs(e0).max(axis=(1, 2)) ** 3, 1e-300)
+        self.tets = tets[usable]
+        self.inv_rest = np.linalg.inv(e0[usable])  # G: J = E @ G
+        self.weight = (
+            np.ones(int(usable.sum()))
+            if self.options.uniform_weights
+            else np.abs(det0[usable]) / 6.0
+        )
+        # free nodes that are not in any tetrahedron have no energy: leave them alone
+        in_tet = np.zeros(n_aug, dtype=bool)
+        in_tet[self.tets.ravel()] = True
+        self.free = free[in_tet[free]]
+        self.is_free = np.zeros(n, dtype=bool)
+        self.is_free[self.free] = True
+        self.n_nodes = n
+        # node adjacency along the corner edges (real nodes), for growing the relaxed region
+        a = np.repeat(self.tets[:, 0], 3)
+        b = self.tets[:, 1:].ravel()
+        real = b < n
+        adj = sp.csr_matrix((np.ones(int(real.sum())), (a[real], b[real])), shape=(n, n))
+        self._adjacency = ((adj + adj.T) > 0).astype(np.int8).tocsr()
+        # corner rows by (real) node, to pick the corners touching a set of nodes
+        flat = self.tets.ravel()
+        owner = np.repeat(np.arange(len(self.tets)), 4)
+        real = flat < n
+        self._node_rows = sp.csr_matrix(
+            (np.ones(int(real.sum())), (flat[real], owner[real])), shape=(n, len(self.tets))
+        )
+        self.bones = {
+            name: BoneSurfaceDistance(tri) for name, tri in (bones or {}).items() if len(tri)
+        }
+        if contact_nodes is None:
+            contact_nodes = self.free
+        contact_nodes = np.asarray(contact_nodes, dtype=np.int64)
+        keep = self.is_free[contact_nodes]
+        self.contact_nodes = contact_nodes[keep]
+        # each contact node keeps at least its rest clearance from each bone, up to
+        # contact_clearance (tissue lying on a bone at rest may stay on it)
+        self._rest_floor: dict[str, NDArray[np.float64]] = {}
+        for name, surface in self.bones.items():
+            depth = surface.query(self.rest[self.contact_nodes])[0]
+            self._rest_floor[name] = np.clip(depth, 0.0, self.options.contact_clearance)
+        quads = np.zeros((0, 4), dtype=np.int64) if quads is None else np.asarray(quads)
+        if len(quads):
+            rest_det = quad_corner_determinants(self.rest, quads)
+            quads = quads[(rest_det > 0).all(axis=1) & self.is_free[quads].any(axis=1)]
+        self.quads = quads.astype(np.int64)
+        # tissue next to an attachment may go as deep into another bone as the attachment
+        # itself (a patella pressed into the trochlea): holding it out would tear the elements
+        # between the attachment and the contact plane
+        self._attached_nb: sp.csr_matrix | None = None
+        if attached is not None and len(attached):
+            attached = np.unique(np.asarray(attached, dtype=np.int64))
+            nb = self._adjacency[self.contact_nodes][:, attached].tocsr()
+            used = np.unique(nb.indices)
+            self._attached_nodes = attached[used]
+            self._attached_nb = sp.csr_matrix(
+                (np.ones(nb.nnz), np.searchsorted(used, nb.indices), nb.indptr),
+                shape=(len(self.contact_nodes), len(used)),
+            )
+
+    def is_free_quad(self, free: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Which of :attr:`quads` have a node among ``free``."""
+        mask = np.zeros(self.n_nodes, dtype=bool)
+        mask[free] = True
+        return mask[self.quads].any(axis=1)
+
+    def augment(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Coordinates of the real nodes followed by those of the virtual nodes."""
+        return np.vstack([x, self.virtual @ x]) if self.virtual.shape[0] else x
+
+    # ------------------------------------------------------------------ region
+    def corner_distortion(self, x: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+        """Per corner: det J and the shape distortion ``|J|^2 / (3 det J^(2/3))`` (1 = similar)."""
+        jac = _edges(self.augment(x), self.tets) @ self.inv_rest
+        det, _ = _det_and_cofactor(jac)
+        frob = np.einsum("cij,cij->c", jac, jac)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shape = np.where(det > 0, frob / (3.0 * np.cbrt(det) ** 2), np.inf)
+        return det, shape
+
+    def degraded_region(
+        self, x: NDArray[np.float64], extra_seeds: NDArray[np.int64] | None = None
+    ) -> NDArray[np.int64]:
+        """Free nodes within ``rings`` edges or ``region_radius`` of a degraded corner (or of
+        ``extra_seeds``)."""
+        opt = self.options
+        det, shape = self.corner_distortion(x)
+        bad = (det < opt.seed_volume_ratio) | (det > 1.0 / opt.seed_volume_ratio)
+        bad |= shape > opt.seed_shape
+        seed = np.zeros(self.n_nodes, dtype=bool)
+        nodes = self.tets[bad].ravel()
+        seed[nodes[nodes < self.n_nodes]] = True
+        if extra_seeds is not None:
+            seed[extra_seeds] = True
+        region = seed.astype(np.int8)
+        for _ in range(opt.rings):
+            region = region + self._adjacency @ region
+            region = (region > 0).astype(np.int8)
+        region = region > 0
+        if self.region_radius > 0 and seed.any():
+            from scipy.spatial import cKDTree
+
+            dist, _ = cKDTree(x[seed]).query(x[self.free], distance_upper_bound=self.region_radius)
+            region[self.free[np.isfinite(dist)]] = True
+        return np.flatnonzero(region & self.is_free)
+
+    # ------------------------------------------------------------------ contact
+    def _contact_planes(
+        self,
+        x: NDArray[np.float64],
+        nodes: NDArray[np.int64],
+        transforms: Mapping[str, RigidTransform],
+    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Constraints ``n . x_node >= offset`` for the given nodes near a bone, and each
+        node's smallest margin ``depth - allowed depth`` over the bones (< 0: too deep)."""
+        clearance, band = self.options.contact_clearance, self.options.contact_band
+        out_nodes, normals, offsets = [], [], []
+        nearest = np.full(len(nodes), np.inf)
+        p = x[nodes]
+        nb = None
+        if self._attached_nb is not None:
+            nb = self._attached_nb[np.searchsorted(self.contact_nodes, nodes)].tocsr()
+        for name, surface in self.bones.items():
+            tr = transforms.get(name)
+            if tr is None:
+                continue
+            local = tr.inverse().apply(p)
+            depth, point, normal = surface.query(local)
+            slot = np.searchsorted(self.contact_nodes, nodes)
+            floor = self._rest_floor[name][slot].copy()
+            if nb is not None and nb.nnz:
+                att = tr.inverse().apply(x[self._attached_nodes])
+                att_depth = np.minimum(surface.query(att)[0], clearance)
+                rows = np.repeat(np.arange(len(nodes)), np.diff(nb.indptr))
+                np.minimum.at(floor, rows, att_depth[nb.indices])
+            nearest = np.minimum(nearest, depth - floor)
+            near = depth < band
+            if not near.any():
+                continue
+            n_world = tr.apply_vector(normal[near])
+            p_world = tr.apply(point[near])
+            out_nodes.append(np.flatnonzero(near))
+            normals.append(n_world)
+            offsets.append(np.einsum("ij,ij->i", n_world, p_world) + floor[near])
+        if not out_nodes:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), nearest
+        return (
+            np.concatenate(out_nodes),
+            np.concatenate(normals),
+            np.concatenate(offsets),
+            nearest,
+        )
+
+    # ------------------------------------------------------------------ solve
+    def relax(
+        self,
+        coords: NDArray[np.float64],
+        transforms: Mapping[str, RigidTransform] | None = None,
+        progress: ProgressCallback | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> tuple[NDArray[np.float64], RelaxReport]:
+        """Relax a pose.
+
+        Parameters
+        ----------
+        coords : (N, 3) ndarray
+            The pose to start from (not modified).
+        transforms : mapping of segment name to RigidTransform, optional
+            The bones' motions in this pose (needed for contact).
+        progress, cancel : callable, optional
+
+        Returns
+        -------
+        coords : (N, 3) ndarray
+            Relaxed coordinates (a new array).
+        report : RelaxReport
+        """
+        opt = self.options
+        report_progress = progress or (lambda fraction, message: None)
+        should_cancel = cancel or (lambda: False)
+        t0 = time.perf_counter()
+        x = np.array(coords, dtype=np.float64, copy=True)
+        report = RelaxReport()
+        if len(self.free) == 0 or len(self.tets) == 0:
+            return x, report
+        use_contact = bool(self.bones) and transforms is not None
+        penetrating = None
+        if use_contact:
+            _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
+            report.deepest_penetration = float(max(0.0, -depth.min()))
+            penetrating = self.contact_nodes[depth < -1e-3]
+        free = self.degraded_region(x, penetrating)
+        report.free_nodes = len(free)
+        if len(free) == 0:
+            report.seconds = time.perf_counter() - t0
+            return x, report
+        rows = np.unique(self._node_rows[free].indices)
+        sub = _Subproblem(self, rows, free)
+        xl = x[sub.nodes]
+        _, _, det = sub.energy(xl, 1e-3)
+        report.corners = len(sub.tets)
+        report.min_det_before = float(det.min())
+        report.inverted_corners_before = int(np.sum(det <= 0))
+        d_min = report.min_det_before
+        eps = float(np.sqrt(1e-12 + 0.04 * min(d_min, 0.0) ** 2)) if d_min <= 0 else 1e-9
+        eps = max(eps, 1e-9)
+        contact_global = self.contact_nodes[np.isin(self.contact_nodes, free)]
+        # variables scaled by the diagonal of the Hessian at rest (Jacobi preconditioning):
+        # elements of very different sizes otherwise make L-BFGS crawl
+        scale = 1.0 / np.sqrt(np.maximum(sub.diagonal[sub.free], 1e-300))[:, None]
+        stiffness = opt.untangling_contact_stiffness
+        c_local = np.zeros(0, dtype=np.int64)
+        c_normals, c_offsets, c_k = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+        sub_free = sub.free
+        rnd_untangled = False
+        for rnd in range(opt.max_rounds):
+            if should_cancel():
+                raise Cancelled("relaxation cancelled")
+            if use_contact and len(contact_global):
+                x[sub.nodes] = xl
+                which, c_normals, c_offsets, _ = self._contact_planes(x, contact_global, transforms)
+                c_global = contact_global[which]
+                c_local = np.searchsorted(sub.nodes, c_global)
+                c_k = stiffness * sub.diagonal[c_local]
+                report.contact_nodes = len(np.unique(c_global))
+            work = xl.copy()
+
+            def fun(
+                flat: NDArray[np.float64],
+                eps: float = eps,
+                c_local: NDArray = c_local,
+                c_normals: NDArray = c_normals,
+                c_offsets: NDArray = c_offsets,
+                c_k: NDArray = c_k,
+                work: NDArray = work,
+            ) -> tuple[float, NDArray]:
+                work[sub_free] = flat.reshape(-1, 3) * scale
+                energy, grad, _ = sub.energy(work, eps)
+                if len(c_local):
+                    gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
+                    # quadratic up to contact_force_depth deep, linear beyond (Huber): a node
+                    # pinched between two bones is pushed with a bounded force, so the
+                    # barrier, not the contact, has the last word
+                    short = np.minimum(gap, 0.0)
+                    limit = opt.contact_force_depth
+                    clipped = np.maximum(short, -limit)
+                    energy += float(
+                        np.sum(c_k * (0.5 * clipped * clipped + limit * (clipped - short)))
+                    )
+                    np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
+                return energy, (grad[sub_free] * scale).ravel()
+
+            start = (xl[sub_free] / scale).ravel()
+            before = fun(start)[0]
+            result = minimize_lbfgs(fun, start, opt.iterations_per_round)
+            xl[sub_free] = result.x.reshape(-1, 3) * scale
+            _, _, det = sub.energy(xl, eps)
+            report.rounds = rnd + 1
+            report.iterations += int(result.nit)
+            report.evaluations += int(result.nfev)
+            d_min = float(det.min())
+            after = float(result.fun)
+            report.history.append({"eps": eps, "energy": after, "min_det": d_min})
+            report_progress(min(1.0, (rnd + 1) / opt.max_rounds), "relaxing soft tissue")
+            decrease = (before - after) / max(abs(before), 1e-300)
+            # Garanzha et al. 2021: shrink eps as fast as the energy decrease allows
+            sigma = max(1.0 - after / before, opt.eps_decrease) if before > 0 else 1.0
+            chi_min = 0.5 * (d_min + np.sqrt(eps * eps + d_min * d_min))
+            mu = (1.0 - sigma) * chi_min
+            eps = max(float(2.0 * np.sqrt(mu * (mu - d_min))) if d_min < mu else 0.0, 1e-9)
+            stiff_enough = stiffness >= opt.contact_stiffness or not len(c_local)
+            if d_min > 0 and stiff_enough and (decrease < opt.tolerance or rnd_untangled):
+                break
+            rnd_untangled = d_min > 0 and eps <= 1e-9
+            if d_min > 0:
+                stiffness = min(4.0 * stiffness, opt.contact_stiffness)
+        x[sub.nodes] = xl
+        report.min_det_after = d_min
+        report.inverted_corners_after = int(np.sum(det <= 0))
+        report.seconds = time.perf_counter() - t0
+        return x, report

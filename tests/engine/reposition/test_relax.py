@@ -1,0 +1,162 @@
+"""The elastic relaxation on small synthetic blocks: derivatives, untangling, fixed nodes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kneegui.model import ElementBlock
+from kneegui.quality import compute_quality
+from kneegui.reposition.relax import (
+    ElasticRelaxation,
+    RelaxOptions,
+    _Subproblem,
+    corner_tetrahedra,
+    minimize_lbfgs,
+    quad_corner_determinants,
+    shell_face_tetrahedra,
+)
+
+
+def hex_block(n: int = 4, size: float = 10.0):
+    """An n x n x n block of hexes with quad shells on its top face."""
+    ticks = np.arange(n + 1) * size
+    grid = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def node(i, j, k):
+        return (i * (n + 1) + j) * (n + 1) + k
+
+    hexes, quads = [], []
+    for i in range(n):
+        for j in range(n):
+            for k in range(n):
+                hexes.append(
+                    [
+                        node(i, j, k),
+                        node(i + 1, j, k),
+                        node(i + 1, j + 1, k),
+                        node(i, j + 1, k),
+                        node(i, j, k + 1),
+                        node(i + 1, j, k + 1),
+                        node(i + 1, j + 1, k + 1),
+                        node(i, j + 1, k + 1),
+                    ]
+                )
+            quads.append(
+                [node(i, j, n), node(i + 1, j, n), node(i + 1, j + 1, n), node(i, j + 1, n)]
+            )
+    hexes, quads = np.array(hexes), np.array(quads)
+    blocks = {
+        "hex8": ElementBlock("hex8", np.arange(len(hexes)) + 1, np.ones(len(hexes), int), hexes),
+        "quad4": ElementBlock("quad4", np.arange(len(quads)) + 1, np.full(len(quads), 2), quads),
+    }
+    boundary = np.flatnonzero(((grid == 0) | (grid == n * size)).any(axis=1))
+    return grid.astype(float), blocks, boundary, node
+
+
+def relaxation(coords, blocks, free, **options):
+    solids = {"hex8": np.ones(len(blocks["hex8"].ids), bool)}
+    shells = {"quad4": np.ones(len(blocks["quad4"].ids), bool)}
+    tets = corner_tetrahedra(blocks, solids)
+    face_tets, virtual = shell_face_tetrahedra(blocks, shells, solids, len(coords))
+    return ElasticRelaxation(
+        coords,
+        np.concatenate([tets, face_tets]),
+        free,
+        options=RelaxOptions(**options),
+        virtual=virtual,
+        quads=blocks["quad4"].conn,
+    )
+
+
+def test_every_top_shell_gets_four_face_tetrahedra():
+    coords, blocks, _, _ = hex_block(3)
+    solids = {"hex8": np.ones(27, bool)}
+    tets, virtual = shell_face_tetrahedra(blocks, {"quad4": np.ones(9, bool)}, solids, len(coords))
+    assert tets.shape == (36, 4) and virtual.shape == (9, len(coords))
+    np.testing.assert_allclose(np.asarray(virtual.sum(axis=1)).ravel(), 1.0)
+
+
+@pytest.mark.parametrize("eps", [0.5, 0.05])
+def test_gradient_matches_finite_differences_and_the_numpy_reference(eps):
+    coords, blocks, boundary, _ = hex_block(3)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    free = np.union1d(free, np.flatnonzero(coords[:, 2] == 30.0))  # top face too (shells)
+    rx = relaxation(coords, blocks, free)
+    rng = np.random.default_rng(3)
+    x = coords + rng.normal(scale=1.5, size=coords.shape)
+    rows = np.unique(rx._node_rows[rx.free].indices)
+    sub = _Subproblem(rx, rows, rx.free)
+    xl = x[sub.nodes]
+    energy, grad, det = sub.energy(xl, eps)
+    ref_energy, ref_grad, ref_det = sub.energy_numpy(xl, eps)
+    assert energy == pytest.approx(ref_energy, rel=1e-12)
+    np.testing.assert_allclose(grad, ref_grad, rtol=1e-9, atol=1e-9 * np.abs(grad).max())
+    np.testing.assert_allclose(det, ref_det, rtol=1e-12, atol=1e-12)
+    h = 1e-6
+    for i in rng.choice(sub.free, 6, replace=False):
+        for k in range(3):
+            up, down = xl.copy(), xl.copy()
+            up[i, k] += h
+            down[i, k] -= h
+            fd = (sub.energy(up, eps)[0] - sub.energy(down, eps)[0]) / (2 * h)
+            assert grad[i, k] == pytest.approx(fd, rel=1e-4, abs=1e-5 * np.abs(grad).max())
+
+
+def test_untangles_a_folded_block_and_keeps_fixed_nodes():
+    coords, blocks, boundary, node = hex_block(4)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    tangled = coords.copy()
+    centre = node(2, 2, 2)
+    tangled[centre] += [14.0, 3.0, -2.0]  # through the neighbouring node's cells
+    assert compute_quality(tangled, blocks).n_inverted > 0
+    rx = relaxation(coords, blocks, free)
+    relaxed, report = rx.relax(tangled)
+    assert report.inverted_corners_before > 0 and report.inverted_corners_after == 0
+    assert compute_quality(relaxed, blocks).n_inverted == 0
+    np.testing.assert_array_equal(relaxed[boundary], tangled[boundary])
+    again, _ = rx.relax(tangled)
+    np.testing.assert_array_equal(again, relaxed)  # deterministic
+    assert np.array_equal(tangled[centre], coords[centre] + [14.0, 3.0, -2.0])  # input untouched
+
+
+def test_folded_skin_shells_are_unfolded():
+    coords, blocks, boundary, node = hex_block(4)
+    top = np.flatnonzero(coords[:, 2] == 40.0)
+    inner_top = top[~((coords[top, :2] == 0) | (coords[top, :2] == 40)).any(axis=1)]
+    free = np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), inner_top)
+    tangled = coords.copy()
+    tangled[node(2, 2, 4)] += [12.0, 0.0, 0.0]  # the skin node slides over its neighbour
+    before = quad_corner_determinants(tangled, blocks["quad4"].conn)
+    assert (before <= 0).any()
+    relaxed, _ = relaxation(coords, blocks, free).relax(tangled)
+    assert (quad_corner_determinants(relaxed, blocks["quad4"].conn) > 0).all()
+    assert compute_quality(relaxed, blocks).n_inverted == 0
+
+
+def test_a_pose_with_nothing_degraded_is_returned_unchanged():
+    coords, blocks, boundary, _ = hex_block(3)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = coords @ rotation.T + 5.0  # rigid: every corner keeps its shape
+    relaxed, report = relaxation(coords, blocks, free).relax(moved)
+    assert report.free_nodes == 0
+    np.testing.assert_array_equal(relaxed, moved)
+
+
+def test_lbfgs_minimises_a_badly_scaled_quadratic_and_stops_at_a_barrier():
+    scale = np.array([1.0, 100.0, 1e-2])
+
+    def quadratic(x):
+        return float(np.sum(scale * (x - 1.0) ** 2)), 2 * scale * (x - 1.0)
+
+    result = minimize_lbfgs(quadratic, np.zeros(3), 200, ftol=1e-15)
+    np.testing.assert_allclose(result.x, 1.0, atol=1e-5)
+
+    def barrier(x):  # infinite for x <= 0: the line search must stay on the right side
+        if x[0] <= 0:
+            return float("inf"), np.zeros(1)
+        return float(x[0] - np.log(x[0])), np.array([1.0 - 1.0 / x[0]])
+
+    result = minimize_lbfgs(barrier, np.array([5.0]), 100)
+    assert result.x[0] == pytest.approx(1.0, abs=1e-4)
