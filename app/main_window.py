@@ -156,7 +156,7 @@ class MainWindow(QMainWindow):
         self._action(edit, "Undo landmark/role edit", self.ws.undo, QKeySequence.StandardKey.Undo)
         self._action(edit, "Redo", self.ws.redo, QKeySequence.StandardKey.Redo)
         tools = mb.addMenu("&Mesh")
-        self._action(tools, "Smooth current pose", self.ws.smooth)
+        self._action(tools, "Relax and smooth current pose", self.ws.smooth)
         self._action(tools, "Ligament lengths vs. flexion", self.ws.compute_ligament_curve)
         view = mb.addMenu("&View")
         toolbar = QToolBar("View", self)
@@ -169,7 +169,7 @@ class MainWindow(QMainWindow):
             toolbar.addAction(act)
         toolbar.addSeparator()
         for text, slot in (
-            ("Smooth", self.ws.smooth),
+            ("Relax + smooth", self.ws.smooth),
             ("Export…", self.export_dialog),
             ("Screenshot…", self.screenshot_dialog),
         ):

@@ -1,4 +1,4 @@
-"""Smoothing the current pose through the engine (runs in the worker thread)."""
+"""Relaxing and smoothing the current pose through the engine (runs in the worker thread)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from kneegui.errors import SetupError
 from kneegui.model import Model
+from kneegui.reposition.relax import RelaxReport
 from kneegui.setup import JointSetup
 
 SOFT_ROLES = ("flesh", "ligament", "meniscus", "tendon", "capsule")
@@ -31,22 +32,41 @@ def smooth_current(
     setup: JointSetup | None,
     progress: Callable[[float, str], None],
     cancelled: Callable[[], bool],
+    relax: Callable[..., tuple[NDArray[np.float64], RelaxReport]] | None = None,
 ) -> SmoothingOutcome:
-    """Smooth the soft tissue of ``model`` at ``coords`` around its degraded elements."""
+    """Relax (``relax(coords, progress, cancelled)``, e.g. a bound
+    :meth:`kneegui.reposition.Repositioner.relax`) and smooth the soft tissue of ``model`` at
+    ``coords`` around its degraded elements."""
     from kneegui.smoothing.pipeline import smooth_posed_model
 
     if setup is None:
         raise SetupError("smoothing needs a valid setup (roles say which parts may move)")
+    relaxed = ""
+    if relax is not None:
+
+        def relax_progress(fraction: float, message: str) -> None:
+            progress(0.6 * fraction, message)
+
+        coords, relax_report = relax(coords, relax_progress, cancelled)
+        relaxed = (
+            f"relaxed {relax_report.free_nodes} nodes ({relax_report.inverted_corners_before} "
+            f"inverted corners -> {relax_report.inverted_corners_after}, "
+            f"{relax_report.seconds:.1f} s); "
+        )
+
+    def smooth_progress(fraction: float, message: str) -> None:
+        progress(0.6 + 0.4 * fraction if relax is not None else fraction, message)
+
     posed = model.with_coords(coords)
     smoothed, report = smooth_posed_model(
         posed,
         setup.parts_of(*SOFT_ROLES),
         setup.parts_of(*FIXED_ROLES),
         initial=model,
-        progress=progress,
+        progress=smooth_progress,
         cancel=cancelled,
     )
-    message = (
+    message = relaxed + (
         f"smoothed: {report.moved_nodes} nodes moved, worst Jacobian "
         f"{report.worst_jacobian_before:.3f} -> {report.worst_jacobian_after:.3f}, inverted "
         f"{report.inverted_before} -> {report.inverted_after} ({report.seconds:.1f} s)"

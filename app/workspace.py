@@ -772,15 +772,26 @@ class Workspace(QObject):
         return self._start("Ligament lengths", work, done)
 
     def smooth(self) -> bool:
-        """Smooth the current pose in the worker thread (the result becomes current)."""
+        """Relax and smooth the current pose in the worker thread (the result becomes current).
+
+        The relaxation (untangling, bone contact) runs when a repositioner is ready and the
+        pose is the slider's, not already smoothed.
+        """
         if self.model is None:
             return False
         from app.smoothing import smooth_current
 
         model, coords, setup = self.model, self.coords.copy(), self.setup
+        poser, flexion = self.poser, self.flexion
+        relax = poser is not None and not self.smoothed
+
+        def relax_pose(x, progress, cancelled):
+            return poser.relax(x, flexion, progress, cancelled)
 
         def work(progress, cancelled):
-            return smooth_current(model, coords, setup, progress, cancelled)
+            return smooth_current(
+                model, coords, setup, progress, cancelled, relax_pose if relax else None
+            )
 
         def done(result):
             self.set_coords(result.coords, smoothed=True)

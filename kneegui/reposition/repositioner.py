@@ -524,16 +524,43 @@ class Repositioner:
             timings["contact"] = time.perf_counter() - t4
         relax_report = None
         if self.options.relax if relax is None else relax:
-            if self.relaxation is None:
-                self.relaxation = self._elastic_relaxation()
             t5 = time.perf_counter()
-            out, relax_report = self.relaxation.relax(out, tr, progress, cancel)
+            out, relax_report = self.relax(out, bone, progress, cancel)
             timings["relax"] = time.perf_counter() - t5
         achieved = measure_flexion(out, self.setup) if remeasure else bone.measured_flexion_deg
         timings["total"] = time.perf_counter() - t0
         return PoseResult(
             out, float(flexion_deg), float(achieved), bone, skin_report, timings, relax_report
         )
+
+    def relax(
+        self,
+        coords: NDArray[np.float64],
+        bone: BonePose | float,
+        progress: ProgressCallback | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> tuple[NDArray[np.float64], RelaxReport]:
+        """Relax the soft tissue of a pose (see :mod:`kneegui.reposition.relax`).
+
+        Parameters
+        ----------
+        coords : (N, 3) ndarray
+            All node coordinates of a pose (e.g. :meth:`pose`); not modified.
+        bone : BonePose or float
+            The bones' pose, or the flexion (degrees) it was solved for.
+        progress, cancel : callable, optional
+
+        Returns
+        -------
+        coords : (N, 3) ndarray
+            Relaxed coordinates (bones and fixed nodes unchanged).
+        report : RelaxReport
+        """
+        if self.relaxation is None:  # built on first use when options.relax is off
+            self.relaxation = self._elastic_relaxation()
+        if not isinstance(bone, BonePose):
+            bone = self.bone_pose(float(bone))
+        return self.relaxation.relax(coords, bone.transforms, progress, cancel)
 
     def with_options(self, **changes: Any) -> Repositioner:
         """A new repositioner with some options changed (recomputes the precompute)."""

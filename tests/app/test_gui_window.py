@@ -304,7 +304,7 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     back = read_deck(out)
     np.testing.assert_array_equal(back.node_ids, ws.model.node_ids)
     np.testing.assert_allclose(back.coords, posed, rtol=0, atol=1e-6)
-    # smoothing in the worker: the result becomes the current pose
+    # relaxing + smoothing in the worker: the result becomes the current pose
     before = ws.quality()
     demo_window.guard(ws.smooth)
     assert ws.tasks.busy or ws.smoothed
@@ -312,8 +312,8 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     assert demo_window.last_error is None, demo_window.last_error
     assert ws.smoothed
     after = ws.quality()
-    assert after.n_inverted <= before.n_inverted
-    assert after.worst_jacobian() >= before.worst_jacobian() - 1e-12
+    assert after.n_inverted == 0 < before.n_inverted  # the relaxation untangles the pose
+    assert after.worst_jacobian() > before.worst_jacobian()
     bone_nodes = np.concatenate([ws.setup.segment_nodes[s] for s in ("femur", "tibia")])
     np.testing.assert_array_equal(ws.coords[bone_nodes], posed[bone_nodes])
     out2 = tmp_path / "smoothed90.k"
