@@ -175,3 +175,18 @@ def test_cli_json_has_model_parts_roles(tmp_path, block_model, capsys):
         assert set(printed["model"][metric]) == {"worst", "mean", "std", "warn", "fail"}
     assert printed["model"]["inverted"] == 1
     assert printed["model"]["jacobian"]["worst"] == pytest.approx(-0.4)
+
+
+def test_gate_ignores_round_off_below_the_tolerance(block_model):
+    """A pose at the initial angle moves nodes by round-off only: that must not fail the gate,
+    while a visible loss (1e-4) still does."""
+    from kneegui.quality.summary import GATE_JACOBIAN_TOLERANCE
+
+    model = block_model(3, 3, 3, skin=False)
+    q0 = compute_quality(model.coords, model.blocks)
+    s = summarize_quality(model, q0, initial=q0)
+    j = s["model"]["jacobian"]
+    j["worst"] = j["initial_worst"] - 0.1 * GATE_JACOBIAN_TOLERANCE
+    assert quality_gate(s) == []
+    j["worst"] = j["initial_worst"] - 1e-4
+    assert any("Jacobian" in r for r in quality_gate(s))
