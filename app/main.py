@@ -32,6 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("jacobian", "aspect", "warpage", "skew", "volume_change"),
     )
     parser.add_argument(
+        "--relax",
+        action="store_true",
+        help="relax and smooth the pose (as the toolbar button) before the screenshot",
+    )
+    parser.add_argument(
         "--demo-elements", type=int, default=None, help="size of the generated demo leg (elements)"
     )
     return parser
@@ -79,8 +84,16 @@ def main(argv: list[str] | None = None) -> int:
             if args.colour:
                 ws.set_metric(args.metric)
                 ws.set_colour_mode(args.colour)
+            if args.relax:
+                window.guard(ws.smooth)
         if args.screenshot:
-            QTimer.singleShot(300, lambda: finish(ready))
+            QTimer.singleShot(300, lambda: finish_when_idle(ready))
+
+    def finish_when_idle(ready: bool) -> None:
+        if window.ws.tasks.busy and time.monotonic() - started < READY_TIMEOUT_S + 300:
+            QTimer.singleShot(200, lambda: finish_when_idle(ready))
+            return
+        QTimer.singleShot(300, lambda: finish(ready))
 
     def finish(ready: bool) -> None:
         window.viewport.flush()
