@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--elements",
         type=int,
         default=20_000,
-        help="wanted number of solid elements (default 20000; about 5000 to over 1000000)",
+        help="wanted number of solid elements (default 20000; from about 7,200 to over 1000000)",
     )
     parser.add_argument(
         "--side", choices=("right", "left"), default="right", help="which leg (default right)"
