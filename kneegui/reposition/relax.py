@@ -14,13 +14,17 @@ bones (and the tissue attached to them) held where the kinematics put them:
       f(J) = (1 - theta) |J|^2 / chi(det J)^(2/3) + theta (det J^2 + 1) / chi(det J)
       chi(D) = (D + sqrt(eps^2 + D^2)) / 2
 
-  weighted by the corner's initial volume. The first term penalises change of shape, the second
-  change of volume; both are smallest at the initial shape (``J`` a rotation). As ``eps`` -> 0 the
-  energy becomes a barrier that no corner can cross into inversion; the schedule of ``eps`` from the
-  paper untangles corners that the blend inverted. Minimised with L-BFGS (SciPy).
+  every corner weighted the same (or by its initial volume). The first term penalises change of
+  shape, the second change of volume; both are smallest at the initial shape (``J`` a rotation).
+  As ``eps`` -> 0 the energy becomes a barrier that no corner can cross into inversion; the
+  schedule of ``eps`` from the paper untangles corners that the blend inverted. Minimised with
+  L-BFGS (:func:`minimize_lbfgs`) on Jacobi-scaled variables.
+- shells lying on solid faces (skin, capsule, tendon) add tetrahedra to a virtual apex inside the
+  solid and a barrier on their own corner determinants, so they cannot fold or turn into darts.
 - bone contact: a soft-tissue node near a bone is kept on the outside of the bone's tangent plane at
-  its closest surface point (a quadratic penalty), with the planes recomputed from the bone
-  surfaces between the solver's rounds, so tissue slides along a condyle instead of entering it.
+  its closest surface point (a penalty whose force stops growing 1 mm deep), with the planes
+  recomputed from the bone surfaces between the solver's rounds, so tissue slides along a condyle
+  instead of entering it.
 
 Element count, node ids and connectivity never change; only the free nodes move.
 """

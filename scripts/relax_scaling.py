@@ -1,0 +1,46 @@
+"""How the relaxation scales: pose one demo size at one angle and print what it did.
+
+``python scripts/relax_scaling.py 200000 90`` prints the precompute, the relaxation's own
+precompute and time, its report, and the inverted count and worst Jacobian of the result
+(numbers quoted in docs/repositioning.md, "Known limits").
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from kneegui.demo import generate_demo_leg
+from kneegui.model import SOLID_TYPES
+from kneegui.quality import compute_quality
+from kneegui.reposition import Repositioner
+from kneegui.setup import load_setup
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("elements", type=int)
+    parser.add_argument("flexion", type=float)
+    args = parser.parse_args()
+    leg = generate_demo_leg(args.elements)
+    model = leg.model
+    solids = sum(len(b.ids) for t, b in model.blocks.items() if t in SOLID_TYPES)
+    print(f"demo: {solids:,} solids, {model.n_nodes:,} nodes")
+    setup = load_setup(leg.setup, model)
+    t = time.perf_counter()
+    rep = Repositioner(model, setup)
+    print(f"precompute {time.perf_counter() - t:.2f} s")
+    t = time.perf_counter()
+    result = rep.pose_detailed(args.flexion)
+    print(
+        f"pose_detailed {time.perf_counter() - t:.2f} s "
+        f"(relaxation precompute {rep.timings_s['relaxation']:.2f} s)"
+    )
+    print(result.relaxation.to_dict())
+    q = compute_quality(result.coords, model.blocks)
+    print(f"inverted {q.n_inverted}, worst corner Jacobian {q.worst_jacobian():.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
