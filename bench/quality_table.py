@@ -60,8 +60,8 @@ def to_markdown(result: dict, machine: dict) -> str:
         "[quality.md](quality.md). Each cell is worst (mean ± σ) over every solid and shell",
         f"element of the demo leg ({result['model']['elements']} elements, "
         f"{result['model']['nodes']} nodes), soft-tissue method `{result['method']}`.",
-        "\"posed\" is the mapping followed by the elastic relaxation (what `kneegui pose",
-        "--no-smooth` writes); \"smoothed\" adds the smoother (what `kneegui pose` writes).",
+        '"posed" is the mapping followed by the elastic relaxation (what `kneegui pose',
+        '--no-smooth` writes); "smoothed" adds the smoother (what `kneegui pose` writes).',
         "",
     ]
     for angle, r in result["angles"].items():
