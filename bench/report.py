@@ -198,7 +198,8 @@ def headline(results: dict) -> list[str]:
 
         lines.append(
             f"- At {angle:g}° on the {base.get('solids', 0):,}-solid demo: kneegui "
-            f"(`{base.get('default_method')}`) {q(raw)}; with smoothing {q(smoothed)}; "
+            f"(`{base.get('default_method')}`) slider pose {q(raw)}; exported (relaxation + "
+            f"smoothing) {q(smoothed)}; "
             f"rigid segment rotation {q(rigid)}; RBF morph {q(rbf)}."
         )
     raw90, smooth90 = default_rows(results, 90.0)
@@ -215,7 +216,9 @@ def headline(results: dict) -> list[str]:
     )
     if paper_time and raw90:
         pose_and_smooth = (
-            f"; pose + smoothing {fmt_seconds(smooth90['seconds'])}" if smooth90 else ""
+            f"; pose + relaxation + smoothing {fmt_seconds(smooth90['seconds'])}"
+            if smooth90
+            else ""
         )
         lines.append(
             f"- The paper: {float(paper_time['paper']):g} s per pose (bones, skin contours and "
@@ -367,7 +370,8 @@ def comparison_tables(results: dict) -> list[str]:
         "",
         f"Same model (demo leg, {base['solids']:,} solids, {base['elements']:,} elements), same "
         "bone transforms at every angle. Time: median of the repeats in brackets (posing only for "
-        "the baselines and kneegui; pose + smoothing for the smoothed rows). RBF control points: "
+        "the baselines and kneegui's slider `pose()`; pose + relaxation (default method only) + "
+        "smoothing for the smoothed rows). RBF control points: "
         f"{ctl.get('count', 0)} ({per_seg}). Quality over every solid and shell element. "
         "![inverted elements](images/bench-inverted.png)",
         "",
