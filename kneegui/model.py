@@ -91,6 +91,26 @@ SOLID_FACES: dict[str, tuple[tuple[int, ...], ...]] = {
     "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
     "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
 }
+#: Corners of each element type as (corner, a, b, c): the corner determinant is
+#: ``det(p[a] - p[i], p[b] - p[i], p[c] - p[i])`` (positive for a valid element); for quad shells
+#: ``c`` is -1 and the element's mean normal takes its place. A 10-node tet uses its corners.
+CORNER_TRIPLES: dict[str, tuple[tuple[int, int, int, int], ...]] = {
+    "hex8": (
+        (0, 1, 3, 4),
+        (1, 2, 0, 5),
+        (2, 3, 1, 6),
+        (3, 0, 2, 7),
+        (4, 7, 5, 0),
+        (5, 4, 6, 1),
+        (6, 5, 7, 2),
+        (7, 6, 4, 3),
+    ),
+    "wedge6": ((0, 1, 2, 3), (1, 2, 0, 4), (2, 0, 1, 5), (3, 5, 4, 0), (4, 3, 5, 1), (5, 4, 3, 2)),
+    "pyramid5": ((0, 1, 3, 4), (1, 2, 0, 4), (2, 3, 1, 4), (3, 0, 2, 4)),
+    "tet4": ((0, 1, 2, 3),),
+    "tet10": ((0, 1, 2, 3),),
+    "quad4": ((0, 1, 3, -1), (1, 2, 0, -1), (2, 3, 1, -1), (3, 0, 2, -1)),
+}
 SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4", "tet10")
 SHELL_TYPES: tuple[str, ...] = ("quad4", "tri3")
 LINE_TYPES: tuple[str, ...] = ("beam2", "discrete")

@@ -41,32 +41,8 @@ from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
-from kneegui.model import ElementBlock
-
-#: Corner tetrahedra per solid type: (corner, edge end 1, edge end 2, edge end 3).
-CORNER_TETS: dict[str, tuple[tuple[int, int, int, int], ...]] = {
-    "hex8": (
-        (0, 1, 3, 4),
-        (1, 2, 0, 5),
-        (2, 3, 1, 6),
-        (3, 0, 2, 7),
-        (4, 7, 5, 0),
-        (5, 4, 6, 1),
-        (6, 5, 7, 2),
-        (7, 6, 4, 3),
-    ),
-    "wedge6": (
-        (0, 1, 2, 3),
-        (1, 2, 0, 4),
-        (2, 0, 1, 5),
-        (3, 5, 4, 0),
-        (4, 3, 5, 1),
-        (5, 4, 3, 2),
-    ),
-    "pyramid5": ((0, 1, 3, 4), (1, 2, 0, 4), (2, 3, 1, 4), (3, 0, 2, 4)),
-    "tet4": ((0, 1, 2, 3),),
-    "tet10": ((0, 1, 2, 3),),
-}
+from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
+from kneegui.smoothing.smoother import corner_determinants
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -92,7 +68,8 @@ def corner_tetrahedra(
         Which elements of each block to take (default: all).
     """
     out = [np.zeros((0, 4), dtype=np.int64)]
-    for etype, table in CORNER_TETS.items():
+    for etype in SOLID_TYPES:
+        table = CORNER_TRIPLES[etype]  # the corners of the corner Jacobian
         block = blocks.get(etype)
         if block is None or len(block.conn) == 0:
             continue
@@ -358,20 +335,6 @@ class BoneSurfaceDistance:
         return sign * best, point, normals
 
 
-def quad_corner_determinants(x: NDArray[np.float64], quads: NDArray[np.int64]) -> NDArray:
-    """(Q, 4) corner determinants ``((p[i+1]-p[i]) x (p[i-1]-p[i])) . n`` of quad shells, with
-    ``n = (p2 - p0) x (p3 - p1)``: the quantities whose signs the quality metrics read."""
-    p = [x[quads[:, i]] for i in range(4)]
-    n = _cross3(p[2] - p[0], p[3] - p[1])
-    return np.stack(
-        [
-            np.einsum("ij,ij->i", _cross3(p[(i + 1) % 4] - p[i], p[(i + 3) % 4] - p[i]), n)
-            for i in range(4)
-        ],
-        axis=1,
-    )
-
-
 @dataclass
 class _MinimizeResult:
     x: NDArray[np.float64]
@@ -457,11 +420,7 @@ def minimize_lbfgs(
 
 def _cross3(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Row-wise cross products of (M, 3) arrays (np.cross costs more on short arrays)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
+    return _cross_t(a.T, b.T).T
 
 
 def _quad_energy(
@@ -518,7 +477,7 @@ class _Subproblem:
         self.nodes = np.union1d(np.union1d(np.unique(tets[~is_virtual]), v_sub.indices), quads)
         m = len(self.nodes)
         self.quads = np.searchsorted(self.nodes, quads).reshape(-1, 4)
-        self.quad_rest = quad_corner_determinants(relax.rest, quads.reshape(-1, 4))
+        self.quad_rest = corner_determinants(relax.rest[quads.reshape(-1, 4)], "quad4")
         self.quad_weight = relax.options.shell_weight
         q_flat = self.quads.ravel()
         self.quad_scatter = sp.csr_matrix(
@@ -721,7 +680,7 @@ class ElasticRelaxation:
             self._rest_floor[name] = np.clip(depth, 0.0, self.options.contact_clearance)
         quads = np.zeros((0, 4), dtype=np.int64) if quads is None else np.asarray(quads)
         if len(quads):
-            rest_det = quad_corner_determinants(self.rest, quads)
+            rest_det = corner_determinants(self.rest[quads], "quad4")
             quads = quads[(rest_det > 0).all(axis=1) & self.is_free[quads].any(axis=1)]
         self.quads = quads.astype(np.int64)
         # tissue next to an attachment may go as deep into another bone as the attachment

@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
 from kneegui.errors import Cancelled, GeometryError
+from kneegui.model import CORNER_TRIPLES as MODEL_CORNER_TRIPLES
 from kneegui.model import ElementBlock, Model
 from kneegui.smoothing.batched import build_problems, nelder_mead
 from kneegui.smoothing.topology import (
@@ -38,27 +39,10 @@ from kneegui.smoothing.topology import (
 ProgressCallback = Callable[[float, str], None]
 CancelCallback = Callable[[], bool]
 
-#: Corner determinants ``det(p[a] - p[i], p[b] - p[i], p[c] - p[i])`` as (i, a, b, c) per type;
-#: for quad shells ``c`` is replaced by the element's mean normal.
+#: :data:`kneegui.model.CORNER_TRIPLES` of the smoothed types, as arrays.
 CORNER_TRIPLES: dict[str, NDArray[np.int64]] = {
-    "hex8": np.array(
-        [
-            (0, 1, 3, 4),
-            (1, 2, 0, 5),
-            (2, 3, 1, 6),
-            (3, 0, 2, 7),
-            (4, 7, 5, 0),
-            (5, 4, 6, 1),
-            (6, 5, 7, 2),
-            (7, 6, 4, 3),
-        ]
-    ),
-    "wedge6": np.array(
-        [(0, 1, 2, 3), (1, 2, 0, 4), (2, 0, 1, 5), (3, 5, 4, 0), (4, 3, 5, 1), (5, 4, 3, 2)]
-    ),
-    "pyramid5": np.array([(0, 1, 3, 4), (1, 2, 0, 4), (2, 3, 1, 4), (3, 0, 2, 4)]),
-    "tet4": np.array([(0, 1, 2, 3)]),
-    "quad4": np.array([(0, 1, 3, -1), (1, 2, 0, -1), (2, 3, 1, -1), (3, 0, 2, -1)]),
+    etype: np.array(MODEL_CORNER_TRIPLES[etype])
+    for etype in ("hex8", "wedge6", "pyramid5", "tet4", "quad4")
 }
 SMOOTHED_TYPES: tuple[str, ...] = tuple(CORNER_TRIPLES)
 #: Corner nodes of each smoothed type (the connectivity columns the smoother reads).
@@ -919,7 +903,7 @@ def _batched_stage(
     return tried, improved
 
 
-def _corner_determinants(
+def corner_determinants(
     points: NDArray[np.float64], etype: str, normal: NDArray[np.float64] | None = None
 ) -> NDArray[np.float64]:
     """(m, T) corner determinants; quads use ``normal`` (m, 3) when given (else their own)."""
@@ -1012,7 +996,7 @@ def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
         for etype, at, pts, normal in groups:
             p = pts.copy()
             p[at] = x
-            d = _corner_determinants(p, etype, normal)
+            d = corner_determinants(p, etype, normal)
             if d.shape[1] < width:  # pad with the first column: min / max unchanged
                 d = np.hstack([d, np.repeat(d[:, :1], width - d.shape[1], axis=1)])
             out.append(d)

@@ -342,7 +342,7 @@ def test_smoother_measure_equals_reported_corner_jacobian(etype):
 def test_batched_local_problem_is_the_exact_affine_map(kind, block_model):
     """d0 + G . delta equals the corner determinants recomputed with the node moved."""
     from kneegui.smoothing.batched import build_problems, objective
-    from kneegui.smoothing.smoother import CORNER_TRIPLES, _corner_determinants
+    from kneegui.smoothing.smoother import CORNER_TRIPLES, corner_determinants
 
     model = block_model(3, 3, 3, skin=False)
     if kind != "hex8":
@@ -361,7 +361,7 @@ def test_batched_local_problem_is_the_exact_affine_map(kind, block_model):
     delta = np.array([0.13, -0.07, 0.05])
     moved = coords.copy()
     moved[node] += delta
-    exact = _corner_determinants(moved[conn], kind)
+    exact = corner_determinants(moved[conn], kind)
     predicted = problem.d0[0] + problem.grad[0] @ delta
     np.testing.assert_allclose(predicted[:, : exact.shape[1]], exact, rtol=1e-10, atol=1e-12)
     assert objective(problem, np.zeros((1, 2, 3))).shape == (1, 2)

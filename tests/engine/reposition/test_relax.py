@@ -13,9 +13,9 @@ from kneegui.reposition.relax import (
     _Subproblem,
     corner_tetrahedra,
     minimize_lbfgs,
-    quad_corner_determinants,
     shell_face_tetrahedra,
 )
+from kneegui.smoothing.smoother import corner_determinants
 
 
 def hex_block(n: int = 4, size: float = 10.0):
@@ -127,10 +127,10 @@ def test_folded_skin_shells_are_unfolded():
     free = np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), inner_top)
     tangled = coords.copy()
     tangled[node(2, 2, 4)] += [12.0, 0.0, 0.0]  # the skin node slides over its neighbour
-    before = quad_corner_determinants(tangled, blocks["quad4"].conn)
+    before = corner_determinants(tangled[blocks["quad4"].conn], "quad4")
     assert (before <= 0).any()
     relaxed, _ = relaxation(coords, blocks, free).relax(tangled)
-    assert (quad_corner_determinants(relaxed, blocks["quad4"].conn) > 0).all()
+    assert (corner_determinants(relaxed[blocks["quad4"].conn], "quad4") > 0).all()
     assert compute_quality(relaxed, blocks).n_inverted == 0
 
 
