@@ -24,17 +24,6 @@ from scipy.spatial import cKDTree
 from kneegui.geometry.transforms import RigidTransform
 
 
-@dataclass
-class _Surface:
-    segment: str
-    tri_xyz: NDArray[np.float64]  # (T, 3, 3) initial pose, outward-oriented
-    tri_normal: NDArray[np.float64]  # (T, 3) unit outward normals
-    node_xyz: NDArray[np.float64]  # (S, 3) surface nodes
-    node_tris: NDArray[np.int64]  # (S, K) incident triangles, -1 padded
-    tree: cKDTree
-    floor: NDArray[np.float64]  # (C,) clearance each candidate keeps from this bone
-
-
 def _incident(triangles: NDArray[np.int64], nodes: NDArray[np.int64]) -> NDArray[np.int64]:
     pos = np.full(int(triangles.max()) + 1, -1, dtype=np.int64)
     pos[nodes] = np.arange(len(nodes))
@@ -79,6 +68,64 @@ def closest_on_triangles(p, tri):
     return q
 
 
+class BoneSurfaceDistance:
+    """Signed distance from points to a rigid bone's surface, evaluated in the bone's rest frame.
+
+    Parameters
+    ----------
+    tri_xyz : (T, 3, 3) ndarray
+        Outward-oriented surface triangles at rest.
+    """
+
+    def __init__(self, tri_xyz: NDArray[np.float64]) -> None:
+        self.tri_xyz = tri_xyz
+        flat = tri_xyz.reshape(-1, 3)
+        nodes_xyz, inverse = np.unique(flat, axis=0, return_inverse=True)
+        tris = inverse.reshape(-1, 3)
+        normal = np.cross(tri_xyz[:, 1] - tri_xyz[:, 0], tri_xyz[:, 2] - tri_xyz[:, 0])
+        self.normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        self.node_xyz = nodes_xyz
+        self.node_tris = _incident(tris, np.arange(len(nodes_xyz)))
+        self.tree = cKDTree(nodes_xyz)
+
+    def query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """For points (M, 3) in the rest frame: signed distance (M,) (+ outside), closest surface
+        point (M, 3), unit outward (pseudo-)normal there (M, 3), and the distance to the nearest
+        surface node (M,).
+
+        The closest point is exact among the triangles around the nearest surface node; the
+        sign comes from the mean normal of every triangle as close as the best (at a shared edge
+        or vertex one face's normal alone can give the wrong side).
+        """
+        node_distance, k = self.tree.query(p)
+        tris = self.node_tris[k]
+        m, width = tris.shape
+        d_all = np.full((m, width), np.inf)
+        q_all = np.zeros((m, width, 3))
+        for j in range(width):
+            t = tris[:, j]
+            ok = t >= 0
+            if ok.any():
+                q_all[ok, j] = closest_on_triangles(p[ok], self.tri_xyz[t[ok]])
+                d_all[ok, j] = np.linalg.norm(p[ok] - q_all[ok, j], axis=1)
+        rows = np.arange(m)
+        j_best = np.argmin(d_all, axis=1)
+        best, point = d_all[rows, j_best], q_all[rows, j_best]
+        tie = (d_all <= best[:, None] * (1 + 1e-9) + 1e-12) & (tris >= 0)
+        normals = np.where(tie[..., None], self.normal[np.maximum(tris, 0)], 0.0).sum(1)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        side = np.einsum("ij,ij->i", p - point, normals)
+        sign = np.where(side < 0, -1.0, 1.0)
+        return sign * best, point, normals, node_distance
+
+
+@dataclass
+class _Surface:
+    segment: str
+    distance: BoneSurfaceDistance
+    floor: NDArray[np.float64]  # (C,) clearance each candidate keeps from this bone
+
+
 class BoneContact:
     """Precomputed contact of soft tissue with the bones.
 
@@ -102,27 +149,22 @@ class BoneContact:
     def __init__(self, coords, bone_triangles, soft, edges, reach: float, clearance: float):
         self.reach = reach
         soft = np.asarray(soft, dtype=np.int64)
-        raw = []
         near = np.zeros(len(soft), dtype=bool)
+        distances = []
         for segment, tris in bone_triangles.items():
             if len(tris) == 0:
                 continue
-            nodes = np.unique(tris)
-            tree = cKDTree(coords[nodes])
-            d, _ = tree.query(coords[soft], distance_upper_bound=reach)
+            distance = BoneSurfaceDistance(coords[tris])
+            d, _ = distance.tree.query(coords[soft], distance_upper_bound=reach)
             near |= np.isfinite(d)
-            txyz = coords[tris]
-            n = np.cross(txyz[:, 1] - txyz[:, 0], txyz[:, 2] - txyz[:, 0])
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-            raw.append((segment, txyz, n, coords[nodes], _incident(tris, nodes), tree))
+            distances.append((segment, distance))
         self.candidates = soft[near]
         self.surfaces: list[_Surface] = []
-        for segment, txyz, n, nxyz, table, tree in raw:
-            depth, _, close = self._signed_distance(
-                coords[self.candidates], txyz, n, nxyz, table, tree
-            )
+        for segment, distance in distances:
+            depth, _, _, node_distance = distance.query(coords[self.candidates])
+            close = node_distance < reach
             floor = np.where(close & (depth >= 0), np.minimum(depth, clearance), -np.inf)
-            self.surfaces.append(_Surface(segment, txyz, n, nxyz, table, tree, floor))
+            self.surfaces.append(_Surface(segment, distance, floor))
         # Laplacian extension: candidates and non-soft nodes are held, the other soft nodes free
         free = soft[~near]
         n_all = len(coords)
@@ -160,31 +202,6 @@ class BoneContact:
                 shape=(len(free), len(self.candidates)),
             )
 
-    def _signed_distance(self, p, txyz, tn, nxyz, table, tree):
-        """Signed distance to the surface (+ outside), closest point, and "near a bone"."""
-        dist, k = tree.query(p)
-        tris = table[k]  # (M, K) triangles around the nearest surface node
-        m, width = tris.shape
-        d_all = np.full((m, width), np.inf)
-        q_all = np.zeros((m, width, 3))
-        for j in range(width):
-            t = tris[:, j]
-            ok = t >= 0
-            if ok.any():
-                q_all[ok, j] = closest_on_triangles(p[ok], txyz[t[ok]])
-                d_all[ok, j] = np.linalg.norm(p[ok] - q_all[ok, j], axis=1)
-        j_best = np.argmin(d_all, axis=1)
-        rows = np.arange(m)
-        best = d_all[rows, j_best]
-        point = q_all[rows, j_best]
-        # sign from the pseudo-normal: the mean normal of every triangle as close as the best
-        # (at a shared edge or vertex one face's normal alone can give the wrong side)
-        tie = d_all <= best[:, None] * (1 + 1e-9) + 1e-12
-        normals = np.where((tie & (tris >= 0))[..., None], tn[np.maximum(tris, 0)], 0.0).sum(1)
-        side = np.einsum("ij,ij->i", p - point, normals)
-        sign = np.where(side < 0, -1.0, 1.0)
-        return sign * best, point, dist < self.reach
-
     def resolve(
         self, positions: NDArray[np.float64], transforms: Mapping[str, RigidTransform]
     ) -> int:
@@ -197,10 +214,8 @@ class BoneContact:
         for srf in self.surfaces:
             t = transforms[srf.segment]
             local = t.inverse().apply(p + push)
-            depth, q, close = self._signed_distance(
-                local, srf.tri_xyz, srf.tri_normal, srf.node_xyz, srf.node_tris, srf.tree
-            )
-            bad = close & (depth < srf.floor)
+            depth, q, _, node_distance = srf.distance.query(local)
+            bad = (node_distance < self.reach) & (depth < srf.floor)
             if bad.any():
                 direction = local[bad] - q[bad]
                 norm = np.linalg.norm(direction, axis=1, keepdims=True)

@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
+from kneegui.reposition.contact import BoneSurfaceDistance
 from kneegui.smoothing.smoother import corner_determinants
 
 ProgressCallback = Callable[[float, str], None]
@@ -282,57 +283,6 @@ class RelaxReport:
         out = dict(self.__dict__)
         out.pop("history")
         return out
-
-
-class BoneSurfaceDistance:
-    """Signed distance from points to a rigid bone's surface, evaluated in the bone's rest frame.
-
-    Parameters
-    ----------
-    tri_xyz : (T, 3, 3) ndarray
-        Outward-oriented surface triangles at rest.
-    """
-
-    def __init__(self, tri_xyz: NDArray[np.float64]) -> None:
-        from scipy.spatial import cKDTree
-
-        from kneegui.reposition.contact import _incident
-
-        self.tri_xyz = tri_xyz
-        flat = tri_xyz.reshape(-1, 3)
-        nodes_xyz, inverse = np.unique(flat, axis=0, return_inverse=True)
-        tris = inverse.reshape(-1, 3)
-        normal = np.cross(tri_xyz[:, 1] - tri_xyz[:, 0], tri_xyz[:, 2] - tri_xyz[:, 0])
-        self.normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-        self.node_xyz = nodes_xyz
-        self.node_tris = _incident(tris, np.arange(len(nodes_xyz)))
-        self.tree = cKDTree(nodes_xyz)
-
-    def query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
-        """Signed distance (M,) (+ outside), closest surface point (M, 3), unit outward normal
-        there (M, 3), for points (M, 3) in the rest frame."""
-        from kneegui.reposition.contact import closest_on_triangles
-
-        _, k = self.tree.query(p)
-        tris = self.node_tris[k]
-        m, width = tris.shape
-        d_all = np.full((m, width), np.inf)
-        q_all = np.zeros((m, width, 3))
-        for j in range(width):
-            t = tris[:, j]
-            ok = t >= 0
-            if ok.any():
-                q_all[ok, j] = closest_on_triangles(p[ok], self.tri_xyz[t[ok]])
-                d_all[ok, j] = np.linalg.norm(p[ok] - q_all[ok, j], axis=1)
-        rows = np.arange(m)
-        j_best = np.argmin(d_all, axis=1)
-        best, point = d_all[rows, j_best], q_all[rows, j_best]
-        tie = (d_all <= best[:, None] * (1 + 1e-9) + 1e-12) & (tris >= 0)
-        normals = np.where(tie[..., None], self.normal[np.maximum(tris, 0)], 0.0).sum(1)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-        side = np.einsum("ij,ij->i", p - point, normals)
-        sign = np.where(side < 0, -1.0, 1.0)
-        return sign * best, point, normals
 
 
 @dataclass
@@ -764,7 +714,7 @@ class ElasticRelaxation:
             if tr is None:
                 continue
             local = tr.inverse().apply(p)
-            depth, point, normal = surface.query(local)
+            depth, point, normal, _ = surface.query(local)
             slot = np.searchsorted(self.contact_nodes, nodes)
             floor = self._rest_floor[name][slot].copy()
             if nb is not None and nb.nnz:
