@@ -195,14 +195,6 @@ def _chi(det: NDArray[np.float64], eps: float) -> tuple[NDArray, NDArray]:
     return np.maximum(chi, 1e-300), 0.5 * (1.0 + det / root)
 
 
-def _det_and_cofactor(m: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
-    """Determinants (C,) and cofactor matrices (C, 3, 3) (d det / d m) of 3x3 matrices."""
-    c0, c1, c2 = m[:, :, 0], m[:, :, 1], m[:, :, 2]
-    cof = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=2)
-    det = np.einsum("ij,ij->i", c0, cof[:, :, 0])
-    return det, cof
-
-
 @dataclass(frozen=True)
 class RelaxOptions:
     """Parameters of the elastic relaxation.
@@ -661,7 +653,7 @@ class ElasticRelaxation:
     def corner_distortion(self, x: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
         """Per corner: det J and the shape distortion ``|J|^2 / (3 det J^(2/3))`` (1 = similar)."""
         jac = _edges(self.augment(x), self.tets) @ self.inv_rest
-        det, _ = _det_and_cofactor(jac)
+        det = np.linalg.det(jac)
         frob = np.einsum("cij,cij->c", jac, jac)
         with np.errstate(invalid="ignore", divide="ignore"):
             shape = np.where(det > 0, frob / (3.0 * np.cbrt(det) ** 2), np.inf)
