@@ -2,15 +2,20 @@
 
 ``python scripts/relax_scaling.py 200000 90`` prints the precompute, the relaxation's own
 precompute and time, its report, and the inverted count and worst Jacobian of the result
-(numbers quoted in docs/repositioning.md, "Known limits").
+(numbers quoted in docs/repositioning.md, "Known limits"). ``--deck`` poses the demo as a user
+gets it: written to an LS-DYNA deck and read back (coordinates rounded to the deck's fields).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import tempfile
 import time
+from pathlib import Path
 
-from kneegui.demo import generate_demo_leg
+from kneegui.demo import generate_demo_leg, write_demo
+from kneegui.io.lsdyna import read_deck
 from kneegui.model import SOLID_TYPES
 from kneegui.quality import compute_quality
 from kneegui.reposition import Repositioner
@@ -21,12 +26,19 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("elements", type=int)
     parser.add_argument("flexion", type=float)
+    parser.add_argument("--deck", action="store_true", help="write the demo deck and read it back")
     args = parser.parse_args()
-    leg = generate_demo_leg(args.elements)
-    model = leg.model
+    if args.deck:
+        with tempfile.TemporaryDirectory() as tmp:
+            write_demo(Path(tmp), args.elements)
+            model = read_deck(Path(tmp) / "demo_leg.k")
+            setup_data = json.loads((Path(tmp) / "demo_leg.setup.json").read_text())
+    else:
+        leg = generate_demo_leg(args.elements)
+        model, setup_data = leg.model, leg.setup
     solids = sum(len(b.ids) for t, b in model.blocks.items() if t in SOLID_TYPES)
     print(f"demo: {solids:,} solids, {model.n_nodes:,} nodes")
-    setup = load_setup(leg.setup, model)
+    setup = load_setup(setup_data, model)
     t = time.perf_counter()
     rep = Repositioner(model, setup)
     print(f"precompute {time.perf_counter() - t:.2f} s")
