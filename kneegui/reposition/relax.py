@@ -25,6 +25,10 @@ bones (and the tissue attached to them) held where the kinematics put them:
   its closest surface point (a penalty whose force stops growing 1 mm deep), with the planes
   recomputed from the bone surfaces between the solver's rounds, so tissue slides along a condyle
   instead of entering it.
+- polish: the energy evens out the distortion on average; the worst elements it leaves are then
+  lifted by the quality-guarded smoother
+  (:func:`kneegui.smoothing.smooth_mesh`) on the same free nodes, with a guard that lets no node
+  go deeper into a bone than it is or than the contact allows.
 
 Element count, node ids and connectivity never change; only the free nodes move.
 """
@@ -43,7 +47,7 @@ from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
 from kneegui.reposition.contact import BoneSurfaceDistance
-from kneegui.smoothing.smoother import corner_determinants
+from kneegui.smoothing.smoother import corner_determinants, smooth_mesh
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -233,6 +237,9 @@ class RelaxOptions:
         Nodes closer to a bone than this (model units) get a contact plane.
     contact_clearance : float
         Distance from the bone surface the contact holds nodes at (model units).
+    polish : bool
+        After the energy, lift the worst elements with the quality-guarded smoother (needs the
+        element blocks, see :class:`ElasticRelaxation`).
     """
 
     volume_weight: float = 0.5
@@ -250,6 +257,7 @@ class RelaxOptions:
     contact_band: float = 3.0
     contact_force_depth: float = 1.0
     contact_clearance: float = 0.2
+    polish: bool = True
 
 
 @dataclass
@@ -267,6 +275,12 @@ class RelaxReport:
     inverted_corners_after: int = 0
     contact_nodes: int = 0
     deepest_penetration: float = 0.0
+    polish_moved_nodes: int = 0
+    polish_worst_before: float = float("nan")
+    polish_worst_after: float = float("nan")
+    polish_inverted_before: int = 0
+    polish_inverted_after: int = 0
+    polish_seconds: float = 0.0
     seconds: float = 0.0
     history: list[dict[str, float]] = field(default_factory=list)
 
@@ -550,6 +564,12 @@ class ElasticRelaxation:
         Besides ``options.rings`` mesh edges, the relaxed region takes every free node within
         this distance (model units) of a seed: a fold needs room in millimetres, not in
         elements, to unfold.
+    blocks : mapping of str to ElementBlock, optional
+        The model's element blocks, for the polish (``options.polish``); without them there is
+        none.
+    goals : mapping of str to (m,) ndarray, optional
+        Per element of ``blocks``, the corner Jacobian the polish aims at
+        (:func:`kneegui.smoothing.pipeline.smoothing_goals`; default 0.6 everywhere).
     """
 
     def __init__(
@@ -564,8 +584,12 @@ class ElasticRelaxation:
         attached: NDArray[np.int64] | None = None,
         quads: NDArray[np.int64] | None = None,
         region_radius: float = 0.0,
+        blocks: Mapping[str, ElementBlock] | None = None,
+        goals: Mapping[str, NDArray[np.float64]] | None = None,
     ) -> None:
         self.options = options or RelaxOptions()
+        self.blocks = blocks
+        self.goals = goals
         n = len(rest_coords)
         self.rest = np.asarray(rest_coords, dtype=np.float64)
         self.region_radius = float(region_radius)
@@ -842,7 +866,7 @@ class ElasticRelaxation:
             d_min = float(det.min())
             after = float(result.fun)
             report.history.append({"eps": eps, "energy": after, "min_det": d_min})
-            report_progress(min(1.0, (rnd + 1) / opt.max_rounds), "relaxing soft tissue")
+            report_progress(0.8 * min(1.0, (rnd + 1) / opt.max_rounds), "relaxing soft tissue")
             decrease = (before - after) / max(abs(before), 1e-300)
             # Garanzha et al. 2021: shrink eps as fast as the energy decrease allows
             sigma = max(1.0 - after / before, opt.eps_decrease) if before > 0 else 1.0
@@ -858,5 +882,65 @@ class ElasticRelaxation:
         x[sub.nodes] = xl
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
+        if opt.polish and self.blocks is not None:
+            x = self._polish(
+                x,
+                free,
+                transforms if use_contact else None,
+                report,
+                lambda fraction, message: report_progress(0.8 + 0.2 * fraction, message),
+                cancel,
+            )
         report.seconds = time.perf_counter() - t0
         return x, report
+
+    def _polish(
+        self,
+        x: NDArray[np.float64],
+        free: NDArray[np.int64],
+        transforms: Mapping[str, RigidTransform] | None,
+        report: RelaxReport,
+        progress: ProgressCallback,
+        cancel: Callable[[], bool] | None,
+    ) -> NDArray[np.float64]:
+        """Lift the worst elements around ``free`` with the quality-guarded smoother."""
+        t = time.perf_counter()
+        guard = None
+        if transforms is not None:
+            contact = self.contact_nodes[np.isin(self.contact_nodes, free)]
+            start = self._contact_planes(x, contact, transforms)[3] if len(contact) else None
+            start_xyz = x[contact]
+
+            def guard(nodes: NDArray[np.int64], coords: NDArray[np.float64]) -> NDArray[np.bool_]:
+                # no node goes deeper into a bone than it is, or than the contact allows
+                ok = np.ones(len(nodes), dtype=bool)
+                if start is None:
+                    return ok
+                slot = np.minimum(np.searchsorted(contact, nodes), len(contact) - 1)
+                hit = np.flatnonzero(contact[slot] == nodes)
+                # a distance moves no faster than the point: a node that moved less than its
+                # margin at the start is still outside (no query needed)
+                moved = np.linalg.norm(coords[nodes[hit]] - start_xyz[slot[hit]], axis=1)
+                hit = hit[moved >= start[slot[hit]]]
+                if len(hit):
+                    margin = self._contact_planes(coords, nodes[hit], transforms)[3]
+                    ok[hit] = margin >= np.minimum(start[slot[hit]], 0.0) - 1e-9
+                return ok
+
+        goals = self.goals if self.goals is not None else 0.6
+        x, smoothing = smooth_mesh(
+            x,
+            self.blocks,
+            free,
+            target=goals,
+            position_guard=guard,
+            progress=progress,
+            cancel=cancel,
+        )
+        report.polish_moved_nodes = smoothing.moved_nodes
+        report.polish_worst_before = smoothing.worst_jacobian_before
+        report.polish_worst_after = smoothing.worst_jacobian_after
+        report.polish_inverted_before = smoothing.inverted_before
+        report.polish_inverted_after = smoothing.inverted_after
+        report.polish_seconds = time.perf_counter() - t
+        return x

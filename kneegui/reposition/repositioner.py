@@ -33,6 +33,7 @@ from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
 from kneegui.model import Model
+from kneegui.quality import compute_quality
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact
 from kneegui.reposition.embedding import Embedding, embed_nodes
@@ -58,6 +59,7 @@ from kneegui.reposition.skin_contours import (
 )
 from kneegui.setup.condyles import surface_node_indices
 from kneegui.setup.format import JointSetup
+from kneegui.smoothing.pipeline import smoothing_goals
 
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.
@@ -415,6 +417,8 @@ class Repositioner:
             attached=np.concatenate([g.segment[s] for s in ("femur", "tibia", "patella")]),
             quads=model.blocks["quad4"].conn[shells["quad4"]] if "quad4" in shells else None,
             region_radius=self.options.relax_region * size,
+            blocks=model.blocks,
+            goals=smoothing_goals(compute_quality(model.coords, model.blocks)),
         )
 
     def _bone_contact(self) -> BoneContact:

@@ -22,6 +22,18 @@ from kneegui.smoothing.smoother import (
 )
 
 
+def smoothing_goals(
+    initial: QualityResult, threshold: float = 0.6, tolerance: float = 0.02
+) -> dict[str, NDArray[np.float64]]:
+    """Each element's quality goal for :func:`kneegui.smoothing.smooth_mesh`: ``threshold``, or
+    its initial corner Jacobian less ``tolerance`` if that is lower (an element that starts
+    poor is brought back to where it was, not above)."""
+    return {
+        etype: np.minimum(threshold, np.maximum(q.jacobian_corner - tolerance, 0.0))
+        for etype, q in initial.by_type.items()
+    }
+
+
 def smooth_posed_model(
     posed: Model,
     soft_tissue_part_ids: Iterable[int],
@@ -87,13 +99,9 @@ def smooth_posed_model(
     sliding = None
     if slide_skin:
         sliding = smoothing_sliding_nodes(posed, soft, skin_part_ids, fixed, degraded, rings)
-    # each element's goal: the threshold, or its initial quality if that was lower
     goals: dict[str, NDArray[np.float64]] | float = threshold
     if initial_quality is not None:
-        goals = {
-            etype: np.minimum(threshold, np.maximum(q.jacobian_corner - tolerance, 0.0))
-            for etype, q in initial_quality.by_type.items()
-        }
+        goals = smoothing_goals(initial_quality, threshold, tolerance)
     coords, report = smooth_mesh(
         posed.coords,
         posed.blocks,

@@ -8,7 +8,8 @@ first, maximising the summed normalised Jacobians of the elements sharing it wit
 on the worst one. Both stages keep a move only if, over the elements sharing the node: the
 worst ordered quality J* (:func:`ordered_quality`) does not drop, the summed J* rises, no more
 elements are invalid, no corner Jacobian falls below the region's worst before smoothing, and the
-largest edge ratio stays below ``max(old, aspect_limit)``.
+largest edge ratio stays below ``max(old, aspect_limit)``, and an optional position guard
+accepts the node's new place.
 
 Hence the model's worst corner Jacobian never decreases; fixed nodes never move; element count
 and connectivity never change; and the result is deterministic.
@@ -38,6 +39,7 @@ from kneegui.smoothing.topology import (
 
 ProgressCallback = Callable[[float, str], None]
 CancelCallback = Callable[[], bool]
+PositionGuard = Callable[[NDArray[np.int64], NDArray[np.float64]], NDArray[np.bool_]]
 
 #: :data:`kneegui.model.CORNER_TRIPLES` of the smoothed types, as arrays.
 CORNER_TRIPLES: dict[str, NDArray[np.int64]] = {
@@ -460,6 +462,7 @@ def smooth_mesh(
     sliding_feature_angle: float = 30.0,
     aspect_limit: float = 5.0,
     warpage_limit: float = 15.0,
+    position_guard: PositionGuard | None = None,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
 ) -> tuple[NDArray[np.float64], SmoothingReport]:
@@ -509,6 +512,11 @@ def smooth_mesh(
         sharing the node above ``max(its value before the move, aspect_limit)``.
     warpage_limit : float
         Likewise for the largest quad-face warpage (degrees) of the elements sharing the node.
+    position_guard : callable(nodes, coords) -> (k,) bool, optional
+        An extra rule on where a node may go: called with the indices of the nodes about to
+        move and the full coordinate array holding their trial positions; a move is kept only
+        where it returns true (e.g. "not deeper inside a bone", see
+        :meth:`kneegui.reposition.relax.ElasticRelaxation.relax`).
     progress : callable(fraction, message), optional
         Called with the fraction done (0-1) and a short message.
     cancel : callable() -> bool, optional
@@ -627,7 +635,7 @@ def smooth_mesh(
             goal[span] = float(target)
     state = _State(
         nb, coords, jac, scaled, aspect, warp, movable, projector, basis, worst_before, scale,
-        float(aspect_limit), float(np.cos(np.radians(warpage_limit))), goal,
+        float(aspect_limit), float(np.cos(np.radians(warpage_limit))), goal, position_guard,
     )  # fmt: skip
     moves = sweeps = optimized = improved = 0
     n_passes = max(int(passes), 1) if n_mov else 0
@@ -710,6 +718,15 @@ class _State:
     aspect_limit: float
     warp_limit_cos: float
     goal: NDArray[np.float64]  # per element (handle): the quality it should reach
+    guard: PositionGuard | None = None
+
+    def allowed(self, nodes: NDArray[np.int64], accept: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """``accept`` narrowed by the position guard (nodes at their trial positions)."""
+        if self.guard is None or not accept.any():
+            return accept
+        out = accept.copy()
+        out[accept] = self.guard(nodes[accept], self.coords)
+        return out
 
     def deficit(self, handles: NDArray[np.int64]) -> NDArray[np.float64]:
         """J* minus the goal of the given elements (negative: below the goal)."""
@@ -777,6 +794,7 @@ def _laplacian_stage(
                 new_j, new_s, new_a, new_w = _evaluate(nb, coords, handles[sel])
                 new = _score(new_j, new_s, new_a, new_w, h_owner[sel], len(group))
                 accept = active & _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)
+                accept = st.allowed(nodes, accept)
                 reject = active & ~accept
                 coords[nodes[reject]] = start[reject]  # put rejected nodes back
                 kept = accept[h_owner[sel]]
@@ -892,6 +910,7 @@ def _batched_stage(
         new_j, new_s, new_a, new_w = _evaluate(nb, st.coords, handles)
         new = _score(new_j, new_s, new_a, new_w, owner, n)
         accept = _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)
+        accept = st.allowed(nodes, accept)
         st.coords[nodes[~accept]] = start[~accept]
         kept = accept[owner]
         st.jac[handles[kept]] = new_j[kept]
@@ -1064,6 +1083,9 @@ def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
     new = _score(j, s_, a, w, one, 1)
     if _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)[0]:
         coords[node] = x
+        if not st.allowed(np.array([node]), np.array([True]))[0]:
+            coords[node] = x0
+            return 0
         st.jac[handles] = j
         st.scaled[handles] = s_
         st.aspect[handles] = a

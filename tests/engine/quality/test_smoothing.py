@@ -389,3 +389,31 @@ def test_report_counts_inverted_elements_out_of_reach(block_model):
     new, report = smooth_mesh(posed, None, smoothing_free_nodes(posed, [2], [1]))
     assert q.n_inverted > 0 and report.inverted_out_of_reach == 0
     assert compute_quality(new, posed.blocks).n_inverted == 0
+
+
+@pytest.mark.parametrize("optimizer", ["batched", "scipy"])
+def test_position_guard_is_obeyed(optimizer, block_model):
+    model = block_model(7, 7, 7, bone_layers=1)
+    posed = _jiggle(model, 0)
+    q_before = compute_quality(posed.coords, posed.blocks)
+    free = smoothing_free_nodes(posed, [2], [1], degraded_elements(q_before), rings=1)
+    # a wall: no node may go to x > its position now + 0.05 (each move is checked)
+    start = posed.coords.copy()
+    calls = []
+
+    def guard(nodes, coords):
+        calls.append(len(nodes))
+        return coords[nodes, 0] <= start[nodes, 0] + 0.05
+
+    free_run, _ = smooth_mesh(posed, None, free, optimizer=optimizer)
+    assert (free_run[:, 0] > start[:, 0] + 0.05).any()  # unguarded, some node crosses it
+    new, report = smooth_mesh(posed, None, free, optimizer=optimizer, position_guard=guard)
+    assert calls and report.moved_nodes > 0
+    assert (new[:, 0] <= start[:, 0] + 0.05 + 1e-12).all()
+    assert compute_quality(new, posed.blocks).worst_jacobian() >= q_before.worst_jacobian()
+    # a guard that refuses everything leaves the mesh as it was
+    frozen, report = smooth_mesh(
+        posed, None, free, optimizer=optimizer, position_guard=lambda n, c: np.zeros(len(n), bool)
+    )
+    np.testing.assert_array_equal(frozen, posed.coords)
+    assert report.moved_nodes == 0

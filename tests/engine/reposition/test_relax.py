@@ -160,3 +160,22 @@ def test_lbfgs_minimises_a_badly_scaled_quadratic_and_stops_at_a_barrier():
 
     result = minimize_lbfgs(barrier, np.array([5.0]), 100)
     assert result.x[0] == pytest.approx(1.0, abs=1e-4)
+
+
+def test_polish_lifts_the_worst_element_the_energy_leaves():
+    coords, blocks, boundary, node = hex_block(4)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    sheared = coords.copy()
+    sheared[node(2, 2, 2)] += [6.0, 5.0, 0.0]  # valid, with poor corners around it
+    # an energy stopped after one iteration leaves them poor; the polish must lift them
+    short = {"max_rounds": 1, "iterations_per_round": 1, "seed_shape": 1.05}
+    plain, plain_report = relaxation(coords, blocks, free, **short).relax(sheared)
+    rx = relaxation(coords, blocks, free, **short)
+    rx.blocks = blocks
+    polished, report = rx.relax(sheared)
+    worst_plain = compute_quality(plain, blocks).worst_jacobian()
+    worst_polished = compute_quality(polished, blocks).worst_jacobian()
+    assert report.polish_moved_nodes > 0 and plain_report.polish_moved_nodes == 0
+    assert worst_polished > worst_plain + 0.05
+    assert report.polish_worst_after == pytest.approx(worst_polished)
+    np.testing.assert_array_equal(polished[boundary], sheared[boundary])
