@@ -29,13 +29,22 @@ def known_gap(angle: float, reason: str):
 
 CROSSING_GAP = (
     "the posterior skin creases from 60 deg on and neighbouring contours cross there (small "
-    "demo, relaxed pose: 4, 28 and 86 crossing pairs at 60, 90 and 120 deg), where the "
+    "demo, relaxed pose: 4, 25 and 80 crossing pairs at 60, 90 and 120 deg), where the "
     "relaxation treats the skin as a free surface"
 )
 PENETRATION_GAP = (
     "the relaxation lets tissue next to a ligament or capsule attachment go as deep into a "
     "bone as the attachment itself, and pushes a node pinched between two bones with a bounded "
-    "force (so that no element inverts): 2 to 8 nodes of the small demo stay deeper than 0.5 mm"
+    "force (so that no element inverts): 2 to 5 nodes of the small demo stay deeper than 0.5 mm"
+)
+
+
+WORST_JACOBIAN_GAP = (
+    "the worst elements are ligament and meniscus elements with one face on a bone: the demo's "
+    "menisci are welded to the tibia while the condyles press up to 5.5 mm into them, its PCL's "
+    "femoral footprint lies 18 mm posterior-superior of the F-E axis (flexion shortens it by "
+    "71 % at 90 deg) and the MCL turns about its femoral attachment; after the relaxation and "
+    "its polish they stay below 90 % of the initial worst Jacobian"
 )
 
 
@@ -82,6 +91,13 @@ def test_no_inverted_elements(small_leg, small_posed, angle):
     q = compute_quality(result.coords, small_leg.model.blocks)
     assert q.n_inverted == 0, result.relaxation
     assert result.relaxation.min_det_after > 0
+
+
+@pytest.mark.xfail(strict=True, reason=WORST_JACOBIAN_GAP)
+def test_worst_jacobian_at_90_is_at_least_90_percent_of_the_initial(small_leg, small_posed):
+    initial = compute_quality(small_leg.model.coords, small_leg.model.blocks).worst_jacobian()
+    posed = compute_quality(small_posed(90.0).coords, small_leg.model.blocks).worst_jacobian()
+    assert posed >= 0.9 * initial
 
 
 def test_live_pose_is_the_unrelaxed_mapping(small_repositioner):
