@@ -2,10 +2,27 @@
 
 from __future__ import annotations
 
+import sys
+import sysconfig
 from pathlib import Path
 
-#: The repository's ``resources/`` folder (the package is installed in editable mode).
-RESOURCES_DIR = Path(__file__).resolve().parent.parent / "resources"
+
+def _find_resources_dir() -> Path:
+    """The repository's ``resources/`` (editable install, source checkout), else the copy a
+    wheel installs under ``<prefix>/share/kneegui/resources`` (pyproject's data-files)."""
+    source = Path(__file__).resolve().parent.parent / "resources"
+    if source.is_dir():
+        return source
+    prefixes = [sysconfig.get_path("data"), sys.prefix, sys.base_prefix]
+    for prefix in prefixes:
+        installed = Path(prefix) / "share" / "kneegui" / "resources"
+        if installed.is_dir():
+            return installed
+    return source  # resource_path() names it when a file is missing
+
+
+#: The data folder (see :func:`_find_resources_dir`).
+RESOURCES_DIR = _find_resources_dir()
 
 
 def resource_path(name: str) -> Path:
