@@ -48,9 +48,15 @@ def smooth_current(
             progress(0.6 * fraction, message)
 
         coords, relax_report = relax(coords, relax_progress, cancelled)
+        polish = ""
+        if relax_report.polish_moved_nodes:
+            polish = (
+                f", polish: worst Jacobian {relax_report.polish_worst_before:.3f} -> "
+                f"{relax_report.polish_worst_after:.3f}"
+            )
         relaxed = (
             f"relaxed {relax_report.free_nodes} nodes ({relax_report.inverted_corners_before} "
-            f"inverted corners -> {relax_report.inverted_corners_after}, "
+            f"inverted corners -> {relax_report.inverted_corners_after}{polish}, "
             f"{relax_report.seconds:.1f} s); "
         )
 

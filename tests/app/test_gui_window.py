@@ -306,11 +306,15 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     np.testing.assert_allclose(back.coords, posed, rtol=0, atol=1e-6)
     # relaxing + smoothing in the worker: the result becomes the current pose
     before = ws.quality()
+    messages = []
+    ws.status.connect(messages.append)
     demo_window.guard(ws.smooth)
     assert ws.tasks.busy or ws.smoothed
     wait_idle(qtbot, ws, timeout=150)
     assert demo_window.last_error is None, demo_window.last_error
     assert ws.smoothed
+    # the status line says what the relaxation, its polish and the smoother did
+    assert any("relaxed" in m and "polish: worst Jacobian" in m for m in messages), messages
     after = ws.quality()
     assert after.n_inverted == 0 < before.n_inverted  # the relaxation untangles the pose
     assert after.worst_jacobian() > before.worst_jacobian()
