@@ -49,10 +49,11 @@ def smooth_current(
 
         coords, relax_report = relax(coords, relax_progress, cancelled)
         polish = ""
-        if relax_report.polish_moved_nodes:
+        done = relax_report.polish
+        if done is not None and done.moved_nodes:
             polish = (
-                f", polish: worst Jacobian {relax_report.polish_worst_before:.3f} -> "
-                f"{relax_report.polish_worst_after:.3f}"
+                f", polish: worst Jacobian {done.worst_jacobian_before:.3f} -> "
+                f"{done.worst_jacobian_after:.3f}"
             )
         relaxed = (
             f"relaxed {relax_report.free_nodes} nodes ({relax_report.inverted_corners_before} "

@@ -47,7 +47,7 @@ from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
 from kneegui.reposition.contact import BoneSurfaceDistance
-from kneegui.smoothing.smoother import corner_determinants, smooth_mesh
+from kneegui.smoothing.smoother import SmoothingReport, corner_determinants, smooth_mesh
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -275,19 +275,15 @@ class RelaxReport:
     inverted_corners_after: int = 0
     contact_nodes: int = 0
     deepest_penetration: float = 0.0
-    polish_moved_nodes: int = 0
-    polish_worst_before: float = float("nan")
-    polish_worst_after: float = float("nan")
-    polish_inverted_before: int = 0
-    polish_inverted_after: int = 0
-    polish_seconds: float = 0.0
     seconds: float = 0.0
     history: list[dict[str, float]] = field(default_factory=list)
+    polish: SmoothingReport | None = None  # what the polish did (the smoother's own report)
 
     def to_dict(self) -> dict[str, object]:
         """JSON-ready summary."""
         out = dict(self.__dict__)
         out.pop("history")
+        out["polish"] = None if self.polish is None else self.polish.to_dict()
         return out
 
 
@@ -904,7 +900,6 @@ class ElasticRelaxation:
         cancel: Callable[[], bool] | None,
     ) -> NDArray[np.float64]:
         """Lift the worst elements around ``free`` with the quality-guarded smoother."""
-        t = time.perf_counter()
         guard = None
         if transforms is not None:
             contact = self.contact_nodes[np.isin(self.contact_nodes, free)]
@@ -928,7 +923,7 @@ class ElasticRelaxation:
                 return ok
 
         goals = self.goals if self.goals is not None else 0.6
-        x, smoothing = smooth_mesh(
+        x, report.polish = smooth_mesh(
             x,
             self.blocks,
             free,
@@ -937,10 +932,4 @@ class ElasticRelaxation:
             progress=progress,
             cancel=cancel,
         )
-        report.polish_moved_nodes = smoothing.moved_nodes
-        report.polish_worst_before = smoothing.worst_jacobian_before
-        report.polish_worst_after = smoothing.worst_jacobian_after
-        report.polish_inverted_before = smoothing.inverted_before
-        report.polish_inverted_after = smoothing.inverted_after
-        report.polish_seconds = time.perf_counter() - t
         return x
