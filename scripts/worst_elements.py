@@ -3,7 +3,10 @@
 ``python scripts/worst_elements.py 90`` poses the default demo (mapping + relaxation, what the
 export writes) and prints the worst corner Jacobian of every soft-tissue part, the span between
 each ligament's femoral and tibial attachments at rest and posed, and how deep each meniscus
-would be inside the femur if it moved rigidly with the tibia.
+would be inside the femur if it moved rigidly with the tibia, and how many pairs of neighbouring
+skin contours cross and how many interior tissue nodes are deeper than 0.5 mm in each bone
+(the numbers in the strict-xfail reasons of tests/engine/reposition use
+``--elements 2000``, the tests' small demo).
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ import numpy as np
 from kneegui.demo import generate_demo_leg
 from kneegui.quality import compute_quality
 from kneegui.reposition import Repositioner
+from kneegui.reposition.checks import penetrating, surface_triangles
 from kneegui.reposition.contact import BoneSurfaceDistance
+from kneegui.reposition.skin_contours import build_skin_contours, count_contour_crossings
 from kneegui.setup import load_setup
 
 SOFT = ("flesh", "capsule", "skin", "ligament", "meniscus", "tendon")
@@ -79,6 +84,31 @@ def main() -> int:
         )
         depth = femur.query(to_femur.apply(bone.transforms["tibia"].apply(x0[nodes])))[0]
         print(f"  {model.parts[pid].title:28s} {max(0.0, -depth.min()):.1f} mm")
+    contours = build_skin_contours(
+        x0,
+        rep.groups.skin,
+        rep.axes.knee_center,
+        rep.axes.superior,
+        rep.axes.tibia_axis.direction,
+        setup.skin_contours,
+        rep.options.zone_factor,
+        rep.groups.bone_surface,
+    )
+    print(f"skin contour crossings: {count_contour_crossings(contours, x, reference=x0)}")
+    interior = np.concatenate([rep.groups.flesh, rep.groups.band])
+    inside = {
+        role: int(
+            penetrating(
+                x[interior],
+                x,
+                surface_triangles(model, setup.parts_of(role), shells=False),
+                rep.axes.fe_axis.direction,
+                tolerance=0.5,
+            ).sum()
+        )
+        for role in ("femur", "tibia", "fibula", "patella")
+    }
+    print(f"interior nodes deeper than 0.5 mm in a bone: {inside}")
     return 0
 
 

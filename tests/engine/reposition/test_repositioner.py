@@ -27,6 +27,7 @@ def known_gap(angle: float, reason: str):
     return pytest.param(angle, marks=pytest.mark.xfail(strict=True, reason=reason))
 
 
+# the counts below: python scripts/worst_elements.py ANGLE --elements 2000
 CROSSING_GAP = (
     "the posterior skin creases from 60 deg on and neighbouring contours cross there (small "
     "demo, relaxed pose: 4, 25 and 80 crossing pairs at 60, 90 and 120 deg), where the "
