@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -113,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
             f"{final['jacobian']['worst']:.3f} (initial {q['initial']['jacobian']['worst']:.3f})"
             f", inverted {final['inverted']}"
         )
+        for warning in report["warnings"]:
+            print(f"kneegui: warning: {deg:g} deg: {warning}", file=sys.stderr)
         if not posed.passes_gate:
             status = EXIT_QUALITY_GATE
         if written:

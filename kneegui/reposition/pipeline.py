@@ -16,6 +16,9 @@ from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner
 
 ProgressCallback = Callable[[float, str], None]
 
+#: A bone reaching this much (model units) deeper into another than at rest is warned about.
+BONE_OVERLAP_TOLERANCE = 0.1
+
 
 @dataclass(frozen=True)
 class PosedModel:
@@ -133,6 +136,10 @@ def pose_model(
         smoothing = smooth_report.to_dict()
     summary = summarize_quality(final, final_q, initial=initial_q)
     reasons = quality_gate(summary)
+    overlaps = repositioner.bone_overlap(result.bone_pose)
+    # a bone reaching into another deeper than it did at rest: the kinematics do not suit
+    # these bones (axes, landmarks or tables), and tissue between them is crushed
+    warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,
@@ -155,7 +162,9 @@ def pose_model(
             "tibial_rotation_deg": result.bone_pose.tibial_rotation_deg,
             "patellar_flexion_deg": result.bone_pose.patellar_flexion_deg,
             "patellar_tilt_deg": result.bone_pose.patellar_tilt_deg,
+            "overlap": [o.to_dict() for o in overlaps if o.depth > 0 or o.rest_depth > 0],
         },
+        "warnings": warnings,
         "timings_s": {**{f"pose_{k}": v for k, v in result.timings_s.items()}, **timings},
     }
     report_progress(1.0, "done")

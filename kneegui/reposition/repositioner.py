@@ -34,6 +34,7 @@ from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
 from kneegui.model import Model
 from kneegui.quality import compute_quality
+from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact
 from kneegui.reposition.embedding import Embedding, embed_nodes
@@ -316,6 +317,7 @@ class Repositioner:
         # the relaxation's precompute is left to its first use: the slider never needs it, and
         # on a 1M-element model it costs more than everything above
         self.relaxation: ElasticRelaxation | None = None
+        self._overlap_check: BoneOverlapCheck | None = None
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -565,6 +567,21 @@ class Repositioner:
         if not isinstance(bone, BonePose):
             bone = self.bone_pose(float(bone))
         return self.relaxation.relax(coords, bone.transforms, progress, cancel)
+
+    def bone_overlap(self, bone: BonePose | float) -> list[BoneOverlap]:
+        """How deep each rigid segment's surface lies inside another's in a pose (deepest
+        first; :mod:`kneegui.reposition.bone_overlap`). The check is built on first use.
+
+        Parameters
+        ----------
+        bone : BonePose or float
+            The bones' pose, or the flexion (degrees) to solve it for.
+        """
+        if self._overlap_check is None:
+            self._overlap_check = BoneOverlapCheck(self.model.coords, self._bone_triangles())
+        if not isinstance(bone, BonePose):
+            bone = self.bone_pose(float(bone))
+        return self._overlap_check.measure(bone.transforms)
 
     def with_options(self, **changes: Any) -> Repositioner:
         """A new repositioner with some options changed (recomputes the precompute)."""

@@ -66,6 +66,8 @@ def test_pose_at_the_initial_angle_passes_and_reports(demo_files, tmp_path):
         assert "inverted" in data["quality"][stage]
     assert {"max_element_pct", "soft_tissue_total_pct"} <= set(data["volume_change"])
     assert abs(data["achieved_flexion"] - 9.0) < 0.1
+    assert data["bones"]["overlap"] == [] and data["warnings"] == []
+    assert "warning" not in result.stderr
     # only node coordinate lines may differ from the input deck
     before = deck.read_text().splitlines()
     after = out.read_text().splitlines()
@@ -106,6 +108,21 @@ def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
         assert report["target_flexion"] == float(angle)
         assert posed.n_nodes == read_deck(deck).n_nodes
         assert not np.allclose(posed.coords, read_deck(deck).coords)
+
+
+def test_bones_reaching_into_each_other_are_reported_and_warned_about(demo_files, tmp_path):
+    """Hyperextended to -5 deg, the demo's patella (0.65 x the knee's flexion about the F-E
+    axis) rides up into the anterior femur: the report says how deep, the CLI warns."""
+    deck, setup = demo_files
+    out, report = tmp_path / "leg.k", tmp_path / "leg.json"
+    argv = ["pose", str(deck), "--setup", str(setup), "--flexion", "-5", "--out", str(out)]
+    result = kneegui(*argv, "--report", str(report), "--force", "--no-smooth", cwd=tmp_path)
+    data = json.loads(report.read_text())
+    overlaps = {(o["inner"], o["outer"]): o for o in data["bones"]["overlap"]}
+    patella = overlaps["patella", "femur"]
+    assert patella["depth"] > 1.0 and patella["nodes"] > 0 and patella["rest_depth"] == 0.0
+    assert any("the patella reaches" in w and "into the femur" in w for w in data["warnings"])
+    assert "kneegui: warning: -5 deg: the patella reaches" in result.stderr
 
 
 @pytest.mark.parametrize(

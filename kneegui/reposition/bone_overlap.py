@@ -1,0 +1,123 @@
+"""Bone-to-bone overlap of a pose: how deep one rigid segment's surface went into another's.
+
+Bones move rigidly with the kinematic tables about the fitted axes, so nothing in the method
+stops the tibia from passing through the femur when the axes or the tables do not suit the
+model's bones (a condyle that is not circular about the F-E axis, a plateau too close to it,
+misplaced landmarks). Soft tissue caught between two overlapping bones can only be crushed, and
+the solver starts from an initial penetration, so every pose is checked.
+
+A segment's surface nodes are taken into the other segment's rest frame and their signed
+distance to its outer surface is measured (:class:`kneegui.reposition.contact.BoneSurfaceDistance`),
+in both directions. The rest pose is measured too: a model whose bones already touch or overlap
+is not blamed on the pose.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.geometry.transforms import RigidTransform
+from kneegui.reposition.contact import BoneSurfaceDistance
+
+
+@dataclass(frozen=True)
+class BoneOverlap:
+    """How deep segment ``inner``'s surface lies inside segment ``outer`` in one pose.
+
+    Attributes
+    ----------
+    inner, outer : str
+        Segment names (e.g. ``"tibia"`` inside ``"femur"``).
+    depth : float
+        Deepest surface node of ``inner`` inside ``outer`` (model units; 0 when none is inside).
+    nodes : int
+        Surface nodes of ``inner`` inside ``outer``.
+    rest_depth : float
+        The same depth in the initial pose.
+    """
+
+    inner: str
+    outer: str
+    depth: float
+    nodes: int
+    rest_depth: float
+
+    @property
+    def added_depth(self) -> float:
+        """How much deeper than at rest (model units, never negative)."""
+        return max(0.0, self.depth - self.rest_depth)
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready form."""
+        return {
+            "inner": self.inner,
+            "outer": self.outer,
+            "depth": self.depth,
+            "nodes": self.nodes,
+            "rest_depth": self.rest_depth,
+        }
+
+    def describe(self) -> str:
+        """One line for a user, e.g. ``the tibia reaches 3.18 into the femur (10 surface
+        nodes; 0.00 in the initial pose)`` (model units)."""
+        return (
+            f"the {self.inner} reaches {self.depth:.2f} into the {self.outer} ({self.nodes} "
+            f"surface node(s); {self.rest_depth:.2f} in the initial pose)"
+        )
+
+
+class BoneOverlapCheck:
+    """Precomputed overlap test between every pair of rigid segments.
+
+    Parameters
+    ----------
+    rest_coords : (N, 3) ndarray of float
+        Initial node coordinates.
+    triangles : mapping of segment name to (T, 3) ndarray of int
+        Each segment's outward-oriented outer surface triangles (node indices).
+    """
+
+    def __init__(
+        self, rest_coords: NDArray[np.float64], triangles: Mapping[str, NDArray[np.int64]]
+    ) -> None:
+        rest = np.asarray(rest_coords, dtype=np.float64)
+        used = {name: np.asarray(t, dtype=np.int64) for name, t in triangles.items() if len(t)}
+        self._surfaces = {name: BoneSurfaceDistance(rest[t]) for name, t in used.items()}
+        self._nodes = {name: rest[np.unique(t)] for name, t in used.items()}
+        self._pairs = [
+            (a, b) for x, y in combinations(sorted(used), 2) for a, b in ((x, y), (y, x))
+        ]
+        identity = {name: RigidTransform.identity() for name in used}
+        self._rest_depth = {
+            (inner, outer): depth for inner, outer, depth, _ in self._measure(identity)
+        }
+
+    def _measure(self, transforms: Mapping[str, RigidTransform]):
+        for inner, outer in self._pairs:
+            # inner's surface nodes, posed, then taken into outer's rest frame
+            to_outer = transforms[inner].then(transforms[outer].inverse())
+            signed = self._surfaces[outer].query(to_outer.apply(self._nodes[inner]))[0]
+            inside = signed < 0
+            depth = float(-signed[inside].min()) if inside.any() else 0.0
+            yield inner, outer, depth, int(np.count_nonzero(inside))
+
+    def measure(self, transforms: Mapping[str, RigidTransform]) -> list[BoneOverlap]:
+        """Overlap of every ordered pair of segments in a pose (deepest first).
+
+        Parameters
+        ----------
+        transforms : mapping of segment name to RigidTransform
+            Each segment's motion from the initial pose (e.g. ``BonePose.transforms``); a
+            segment missing from it stays where it is.
+        """
+        full = {name: transforms.get(name, RigidTransform.identity()) for name in self._surfaces}
+        found = [
+            BoneOverlap(inner, outer, depth, nodes, self._rest_depth[inner, outer])
+            for inner, outer, depth, nodes in self._measure(full)
+        ]
+        return sorted(found, key=lambda o: -o.depth)
