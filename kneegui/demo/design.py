@@ -82,8 +82,12 @@ class DemoDesign:
     plateau_medial_y: float = 43.0
     plateau_rim_drop: float = 3.0
     tibial_slope_deg: float = 9.0  # posterior slope of the plateau (cancels the initial flexion)
-    cartilage_gap: float = 3.5  # femur to plateau at the compartment centres, after flexion
+    # plateau to condyle circle at the compartment centres (both cartilages; not modelled):
+    # the plateaus sit this far beyond the posterior condyle circles, so that flexing about the
+    # GCA keeps the tibia clear of the femur
+    cartilage_gap: float = 3.5
     meniscus_max_height: float = 7.0
+    meniscus_outline_blend: float = 0.5  # meniscus top outline: 0 the femur's, 1 the plateau's
     min_flesh_thickness: float = 15.0  # soft minimum bone-to-skin distance
     # levels (straight pose, nominal z at the skin)
     tuberosity_z: tuple[float, float] = (-55.0, -40.0)
@@ -196,8 +200,17 @@ class DemoDesign:
         return self.tibia_shaft_radius + (self.tibia_distal_radius - self.tibia_shaft_radius) * t
 
     def plateau_centre_z(self, medial_weight: ArrayLike) -> FloatArray:
-        """Plateau height at x = 0 in the tibia frame (cartilage gap below the flat femur)."""
-        return (self.distal_flat_z(medial_weight) - self.cartilage_gap) / np.cos(self.flexion_rad)
+        """Plateau height at x = 0 in the tibia frame: ``cartilage_gap`` beyond the condyle
+        circle, whose centre is the F-E axis.
+
+        Flexion turns the tibia about that axis, so the plateau keeps its distance from it and
+        the circular posterior condyle never reaches it at any flexion (seated under the flat
+        distal femur instead, 0.7 R below the axis, the plateau lay 3.3 mm inside the medial
+        condyle's circle and the tibia went that deep into the femur from 60 deg on).
+        """
+        w = np.asarray(medial_weight, dtype=np.float64)
+        radius = (1 - w) * self.lateral_radius + w * self.medial_radius
+        return -(radius + self.cartilage_gap) / np.cos(self.flexion_rad)
 
     def plateau_z(self, x: ArrayLike, y: ArrayLike, medial_weight: ArrayLike) -> FloatArray:
         """Tibial plateau surface (tibia frame): posterior slope, rim dropping at the periphery."""
