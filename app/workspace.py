@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 import json
 from collections.abc import Iterable, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from kneegui.io.atomic import atomic_write_text
 from kneegui.ligaments import Ligament, length_curve, ligament_fibres
 from kneegui.model import Model
 from kneegui.quality import QualityEvaluator, QualityResult
+from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
 from kneegui.setup import ROLES, JointSetup, load_setup
 
 #: Slider range (degrees).
@@ -789,9 +791,18 @@ class Workspace(QObject):
             return poser.relax(x, flexion, progress, cancelled)
 
         def work(progress, cancelled):
-            return smooth_current(
+            outcome = smooth_current(
                 model, coords, setup, progress, cancelled, relax_pose if relax else None
             )
+            bone_overlap = getattr(poser, "bone_overlap", None)  # a Repositioner's
+            if bone_overlap is None:
+                return outcome
+            # bones reaching into each other crush the tissue between them: say so
+            overlaps = bone_overlap(flexion)
+            warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
+            if not warnings:
+                return outcome
+            return replace(outcome, message=f"{outcome.message}; warning: {'; '.join(warnings)}")
 
         def done(result):
             self.set_coords(result.coords, smoothed=True)

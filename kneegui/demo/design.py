@@ -87,7 +87,6 @@ class DemoDesign:
     # GCA keeps the tibia clear of the femur
     cartilage_gap: float = 3.5
     meniscus_max_height: float = 7.0
-    meniscus_outline_blend: float = 0.5  # meniscus top outline: 0 the femur's, 1 the plateau's
     min_flesh_thickness: float = 15.0  # soft minimum bone-to-skin distance
     # levels (straight pose, nominal z at the skin)
     tuberosity_z: tuple[float, float] = (-55.0, -40.0)
@@ -187,6 +186,18 @@ class DemoDesign:
     def femur_knee_weight(self, z: ArrayLike) -> FloatArray:
         """1 where the femur has its distal (condylar) shape, 0 on the shaft."""
         return 1.0 - smoothstep((np.asarray(z, dtype=np.float64) - 25.0) / 70.0)
+
+    def meniscus_height_limit(self, x: ArrayLike) -> FloatArray:
+        """Largest meniscus height over the plateau at ``x`` (mm).
+
+        ``meniscus_max_height`` behind x = 0, where the condyles sweep over the menisci as the
+        knee flexes; in front it grows as the distal femur rises towards the trochlea, so the
+        joint space above the anterior horns stays as thin as behind (a thicker one gives the
+        flesh cells around it aspect ratios above 10 on fine meshes).
+        """
+        x = np.asarray(x, dtype=np.float64)
+        rise = self.distal_rise / self.trochlea_x**2 * np.maximum(x, 0.0) ** 2
+        return self.meniscus_max_height + rise
 
     # ------------------------------------------------------------------ tibia (tibia frame)
     def tibia_knee_weight(self, z: ArrayLike) -> FloatArray:

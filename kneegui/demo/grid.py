@@ -285,13 +285,9 @@ def build_grid(design: DemoDesign, lay: Layout) -> Grid:
     tp_world = rotate_about_y(core[k_tp], phi)
     void_gap = _void_gap(design, core[k_fb], ix)
     target = core[k_fb].copy()
-    # its outline half-way between the femur's and the plateau's: on the femur's alone, the
-    # cells in front of the meniscus twist where the trochlear groove runs behind the plateau
-    target[..., :2] = (1 - design.meniscus_outline_blend) * target[..., :2] + (
-        design.meniscus_outline_blend * tp_world[..., :2]
-    )
     target[..., 2] = np.minimum(
-        core[k_fb][..., 2] - void_gap, tp_world[..., 2] + design.meniscus_max_height
+        core[k_fb][..., 2] - void_gap,
+        tp_world[..., 2] + design.meniscus_height_limit(tp_world[..., 0]),
     )
     core[k_mt] = rotate_about_y(target, -phi)
     for k in range(k_tp + 1, k_mt):

@@ -24,6 +24,9 @@ from numpy.typing import NDArray
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.contact import BoneSurfaceDistance
 
+#: A bone reaching this much (model units) deeper into another than at rest is warned about.
+BONE_OVERLAP_TOLERANCE = 0.1
+
 
 @dataclass(frozen=True)
 class BoneOverlap:

@@ -12,12 +12,10 @@ import numpy as np
 from kneegui.model import SOLID_TYPES, Model
 from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
 from kneegui.quality.metrics import QualityResult
+from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner
 
 ProgressCallback = Callable[[float, str], None]
-
-#: A bone reaching this much (model units) deeper into another than at rest is warned about.
-BONE_OVERLAP_TOLERANCE = 0.1
 
 
 @dataclass(frozen=True)

@@ -315,6 +315,7 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     assert ws.smoothed
     # the status line says what the relaxation, its polish and the smoother did
     assert any("relaxed" in m and "polish: worst Jacobian" in m for m in messages), messages
+    assert not any("warning" in m for m in messages), messages
     after = ws.quality()
     assert after.n_inverted == 0 < before.n_inverted  # the relaxation untangles the pose
     assert after.worst_jacobian() > before.worst_jacobian()
@@ -327,6 +328,20 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     # moving the slider leaves the smoothed state
     set_slider(demo_window, qtbot, 60.0)
     assert not ws.smoothed
+
+
+def test_relax_and_smooth_warns_about_bones_reaching_into_each_other(demo_window, qtbot):
+    """Hyperextended to -5 deg, the demo's patella rides up into the anterior femur: the status
+    line after Relax + smooth says so (at 90 deg, above, there is no such warning)."""
+    ws = demo_window.ws
+    set_slider(demo_window, qtbot, -5.0)
+    messages = []
+    ws.status.connect(messages.append)
+    demo_window.guard(ws.smooth)
+    wait_idle(qtbot, ws, timeout=150)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert any("warning: " in m and "the patella reaches" in m for m in messages), messages
+    set_slider(demo_window, qtbot, 60.0)
 
 
 def test_inverted_elements_block_export_unless_forced(demo_window, qtbot, tmp_path):

@@ -30,22 +30,21 @@ def known_gap(angle: float, reason: str):
 # the counts below: python scripts/worst_elements.py ANGLE --elements 2000
 CROSSING_GAP = (
     "the posterior skin creases from 60 deg on and neighbouring contours cross there (small "
-    "demo, relaxed pose: 4, 25 and 80 crossing pairs at 60, 90 and 120 deg), where the "
-    "relaxation treats the skin as a free surface"
+    "demo, relaxed pose: 9, 37 and 72 skin nodes beyond the neighbouring contour's plane at 60, "
+    "90 and 120 deg), where the relaxation treats the skin as a free surface"
 )
 PENETRATION_GAP = (
     "the relaxation lets tissue next to a ligament or capsule attachment go as deep into a "
     "bone as the attachment itself, and pushes a node pinched between two bones with a bounded "
-    "force (so that no element inverts): 2 to 5 nodes of the small demo stay deeper than 0.5 mm"
+    "force (so that no element inverts): 2 nodes of the small demo stay deeper than 0.5 mm at "
+    "30 deg and 6 at 120 deg (none at 90 deg)"
 )
 
 
 WORST_JACOBIAN_GAP = (
-    "the worst elements are ligament and meniscus elements with one face on a bone: the demo's "
-    "menisci are welded to the tibia while the condyles press up to 5.5 mm into them, its PCL's "
-    "femoral footprint lies 18 mm posterior-superior of the F-E axis (flexion shortens it by "
-    "71 % at 90 deg) and the MCL turns about its femoral attachment; after the relaxation and "
-    "its polish they stay below 90 % of the initial worst Jacobian"
+    "the small demo's worst element at 90 deg is in its PCL (0.24 against the initial 0.33): "
+    "its femoral footprint lies 18 mm posterior-superior of the F-E axis, so flexion shortens "
+    "it by 60 %, and the knee flesh behind the joint comes next (0.26)"
 )
 
 
@@ -118,7 +117,7 @@ def test_relaxation_leaves_the_initial_pose_alone(small_leg, small_repositioner)
 
 
 @pytest.mark.parametrize(
-    "angle", [9.0, *(known_gap(a, PENETRATION_GAP) for a in (30.0, 90.0, 120.0))]
+    "angle", [9.0, 90.0, *(known_gap(a, PENETRATION_GAP) for a in (30.0, 120.0))]
 )
 def test_soft_tissue_inside_skin_and_outside_bones(
     small_leg, small_setup, small_repositioner, small_posed, angle
