@@ -2,8 +2,9 @@
 
 ``python scripts/relax_scaling.py 200000 90`` prints the precompute, the relaxation's own
 precompute and time, its report, and the inverted count and worst Jacobian of the result
-(numbers quoted in docs/repositioning.md, "Known limits"). ``--deck`` poses the demo as a user
-gets it: written to an LS-DYNA deck and read back (coordinates rounded to the deck's fields).
+(numbers quoted in docs/repositioning.md, "Known limits"); several angles pose one after the
+other with the same precompute. ``--deck`` poses the demo as a user gets it: written to an
+LS-DYNA deck and read back (coordinates rounded to the deck's fields).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from kneegui.setup import load_setup
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("elements", type=int)
-    parser.add_argument("flexion", type=float)
+    parser.add_argument("flexion", type=float, nargs="+")
     parser.add_argument("--deck", action="store_true", help="write the demo deck and read it back")
     args = parser.parse_args()
     if args.deck:
@@ -42,15 +43,19 @@ def main() -> int:
     t = time.perf_counter()
     rep = Repositioner(model, setup)
     print(f"precompute {time.perf_counter() - t:.2f} s")
-    t = time.perf_counter()
-    result = rep.pose_detailed(args.flexion)
-    print(
-        f"pose_detailed {time.perf_counter() - t:.2f} s "
-        f"(relaxation precompute {rep.timings_s['relaxation']:.2f} s)"
-    )
-    print(result.relaxation.to_dict())
-    q = compute_quality(result.coords, model.blocks)
-    print(f"inverted {q.n_inverted}, worst corner Jacobian {q.worst_jacobian():.4f}")
+    for flexion in args.flexion:
+        t = time.perf_counter()
+        result = rep.pose_detailed(flexion)
+        print(
+            f"{flexion:g} deg: pose_detailed {time.perf_counter() - t:.2f} s "
+            f"(relaxation precompute {rep.timings_s['relaxation']:.2f} s)"
+        )
+        print(result.relaxation.to_dict())
+        q = compute_quality(result.coords, model.blocks)
+        print(
+            f"{flexion:g} deg: inverted {q.n_inverted}, worst corner Jacobian "
+            f"{q.worst_jacobian():.4f}"
+        )
     return 0
 
 
