@@ -14,7 +14,7 @@ is not blamed on the pose.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -100,7 +100,10 @@ class BoneOverlapCheck:
             (inner, outer): depth for inner, outer, depth, _ in self._measure(identity)
         }
 
-    def _measure(self, transforms: Mapping[str, RigidTransform]):
+    def _measure(
+        self, transforms: Mapping[str, RigidTransform]
+    ) -> Iterator[tuple[str, str, float, int]]:
+        """(inner, outer, depth, nodes inside) for every ordered pair."""
         for inner, outer in self._pairs:
             # inner's surface nodes, posed, then taken into outer's rest frame
             to_outer = transforms[inner].then(transforms[outer].inverse())
