@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.contact import BoneSurfaceDistance
@@ -79,23 +78,17 @@ class BoneOverlapCheck:
 
     Parameters
     ----------
-    rest_coords : (N, 3) ndarray of float
-        Initial node coordinates.
-    triangles : mapping of segment name to (T, 3) ndarray of int
-        Each segment's outward-oriented outer surface triangles (node indices).
+    surfaces : mapping of segment name to BoneSurfaceDistance
+        Each segment's outer surface at rest (its surface nodes are the ones tested against the
+        other segments).
     """
 
-    def __init__(
-        self, rest_coords: NDArray[np.float64], triangles: Mapping[str, NDArray[np.int64]]
-    ) -> None:
-        rest = np.asarray(rest_coords, dtype=np.float64)
-        used = {name: np.asarray(t, dtype=np.int64) for name, t in triangles.items() if len(t)}
-        self._surfaces = {name: BoneSurfaceDistance(rest[t]) for name, t in used.items()}
-        self._nodes = {name: rest[np.unique(t)] for name, t in used.items()}
+    def __init__(self, surfaces: Mapping[str, BoneSurfaceDistance]) -> None:
+        self._surfaces = dict(surfaces)
         self._pairs = [
-            (a, b) for x, y in combinations(sorted(used), 2) for a, b in ((x, y), (y, x))
+            (a, b) for x, y in combinations(sorted(self._surfaces), 2) for a, b in ((x, y), (y, x))
         ]
-        identity = {name: RigidTransform.identity() for name in used}
+        identity = {name: RigidTransform.identity() for name in self._surfaces}
         self._rest_depth = {
             (inner, outer): depth for inner, outer, depth, _ in self._measure(identity)
         }
@@ -107,7 +100,8 @@ class BoneOverlapCheck:
         for inner, outer in self._pairs:
             # inner's surface nodes, posed, then taken into outer's rest frame
             to_outer = transforms[inner].then(transforms[outer].inverse())
-            signed = self._surfaces[outer].query(to_outer.apply(self._nodes[inner]))[0]
+            nodes = self._surfaces[inner].node_xyz
+            signed = self._surfaces[outer].query(to_outer.apply(nodes))[0]
             inside = signed < 0
             depth = float(-signed[inside].min()) if inside.any() else 0.0
             yield inner, outer, depth, int(np.count_nonzero(inside))

@@ -545,8 +545,8 @@ class ElasticRelaxation:
         Corner tetrahedra of the soft-tissue solids (:func:`corner_tetrahedra`).
     free : (F,) ndarray of int
         Nodes the relaxation may move; every other node stays where the pose put it.
-    bones : mapping of segment name to (T, 3, 3) ndarray, optional
-        Rest-pose outer surface triangles of each rigid segment, for contact.
+    bones : mapping of segment name to BoneSurfaceDistance or (T, 3, 3) ndarray, optional
+        Rest-pose outer surface of each rigid segment (or its triangles), for contact.
     contact_nodes : (K,) ndarray of int, optional
         Free nodes that are kept out of the bones (default: every free node).
     options : RelaxOptions, optional
@@ -573,7 +573,7 @@ class ElasticRelaxation:
         rest_coords: NDArray[np.float64],
         tets: NDArray[np.int64],
         free: NDArray[np.int64],
-        bones: Mapping[str, NDArray[np.float64]] | None = None,
+        bones: Mapping[str, BoneSurfaceDistance | NDArray[np.float64]] | None = None,
         contact_nodes: NDArray[np.int64] | None = None,
         options: RelaxOptions | None = None,
         virtual: sp.csr_matrix | None = None,
@@ -627,7 +627,9 @@ class ElasticRelaxation:
             (np.ones(int(real.sum())), (flat[real], owner[real])), shape=(n, len(self.tets))
         )
         self.bones = {
-            name: BoneSurfaceDistance(tri) for name, tri in (bones or {}).items() if len(tri)
+            name: tri if isinstance(tri, BoneSurfaceDistance) else BoneSurfaceDistance(tri)
+            for name, tri in (bones or {}).items()
+            if isinstance(tri, BoneSurfaceDistance) or len(tri)
         }
         if contact_nodes is None:
             contact_nodes = self.free

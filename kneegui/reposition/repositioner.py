@@ -36,7 +36,7 @@ from kneegui.model import Model
 from kneegui.quality import compute_quality
 from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
-from kneegui.reposition.contact import BoneContact
+from kneegui.reposition.contact import BoneContact, BoneSurfaceDistance
 from kneegui.reposition.embedding import Embedding, embed_nodes
 from kneegui.reposition.relax import (
     ElasticRelaxation,
@@ -317,6 +317,7 @@ class Repositioner:
         # the relaxation's precompute is left to its first use: the slider never needs it, and
         # on a 1M-element model it costs more than everything above
         self.relaxation: ElasticRelaxation | None = None
+        self._surfaces: dict[str, BoneSurfaceDistance] | None = None
         self._overlap_check: BoneOverlapCheck | None = None
         self._progress(1.0, "ready")
 
@@ -396,6 +397,17 @@ class Repositioner:
             triangles[segment] = tris if len(tris) else surface_triangles(model, parts)
         return triangles
 
+    def _bone_surfaces(self) -> dict[str, BoneSurfaceDistance]:
+        """Each moving segment's rest surface for distance queries, built once (the relaxation's
+        contact and the bone-overlap check share it)."""
+        if self._surfaces is None:
+            self._surfaces = {
+                name: BoneSurfaceDistance(self.model.coords[tris])
+                for name, tris in self._bone_triangles().items()
+                if len(tris)
+            }
+        return self._surfaces
+
     def _elastic_relaxation(self) -> ElasticRelaxation:
         model, g = self.model, self.groups
         soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
@@ -408,12 +420,11 @@ class Repositioner:
         radial = rel - np.outer(rel @ axis.direction, axis.direction)
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         free = g.soft[np.linalg.norm(radial, axis=1) < self.options.relax_reach * size]
-        bones = {name: model.coords[tris] for name, tris in self._bone_triangles().items()}
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
             free,
-            bones,
+            self._bone_surfaces(),
             options=self.options.relaxation,
             virtual=virtual,
             attached=np.concatenate([g.segment[s] for s in ("femur", "tibia", "patella")]),
@@ -578,7 +589,7 @@ class Repositioner:
             The bones' pose, or the flexion (degrees) to solve it for.
         """
         if self._overlap_check is None:
-            self._overlap_check = BoneOverlapCheck(self.model.coords, self._bone_triangles())
+            self._overlap_check = BoneOverlapCheck(self._bone_surfaces())
         if not isinstance(bone, BonePose):
             bone = self.bone_pose(float(bone))
         return self._overlap_check.measure(bone.transforms)

@@ -7,6 +7,7 @@ import pytest
 
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.bone_overlap import BoneOverlapCheck
+from kneegui.reposition.contact import BoneSurfaceDistance
 
 # a unit cube's outer surface as 12 outward triangles over its 8 corners
 CUBE_CORNERS = np.array(
@@ -14,6 +15,10 @@ CUBE_CORNERS = np.array(
 )
 CUBE_QUADS = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
 CUBE_TRIANGLES = np.array([t for a, b, c, d in CUBE_QUADS for t in ((a, b, c), (a, c, d))])
+
+
+def check_of(coords: np.ndarray, triangles: dict[str, np.ndarray]) -> BoneOverlapCheck:
+    return BoneOverlapCheck({n: BoneSurfaceDistance(coords[t]) for n, t in triangles.items()})
 
 
 def two_cubes(gap: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -32,14 +37,14 @@ def test_cube_triangles_face_outwards():
 
 def test_separate_bones_do_not_overlap():
     coords, triangles = two_cubes(gap=0.5)
-    found = BoneOverlapCheck(coords, triangles).measure({})
+    found = check_of(coords, triangles).measure({})
     assert [(o.inner, o.outer) for o in found] == [("femur", "tibia"), ("tibia", "femur")]
     assert all(o.depth == 0.0 and o.nodes == 0 and o.rest_depth == 0.0 for o in found)
 
 
 def test_a_bone_moved_into_another_reports_the_depth_of_its_deepest_node():
     coords, triangles = two_cubes(gap=0.5)
-    check = BoneOverlapCheck(coords, triangles)
+    check = check_of(coords, triangles)
     # lift the tibia 0.7: its top face (4 corners) is then 0.2 inside the femur's bottom face
     # (and 0.25 from its sides)
     lift = RigidTransform(np.eye(3), np.array([0.0, 0.0, 0.7]))
@@ -57,7 +62,7 @@ def test_a_bone_moved_into_another_reports_the_depth_of_its_deepest_node():
 
 def test_overlap_present_at_rest_is_not_blamed_on_the_pose():
     coords, triangles = two_cubes(gap=-0.2)
-    found = BoneOverlapCheck(coords, triangles).measure({})
+    found = check_of(coords, triangles).measure({})
     tibia_in_femur = next(o for o in found if o.inner == "tibia")
     assert tibia_in_femur.rest_depth == pytest.approx(0.2)
     assert tibia_in_femur.added_depth == 0.0
