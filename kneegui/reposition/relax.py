@@ -240,6 +240,14 @@ class RelaxOptions:
     polish : bool
         After the energy, lift the worst elements with the quality-guarded smoother (needs the
         element blocks, see :class:`ElasticRelaxation`).
+    restarts : int
+        How many times the rounds start again when corners are still inverted after
+        ``max_rounds``: the nodes of those corners go back to their posed positions and the
+        barrier is softened to ``restart_eps`` (the schedule can drive ``eps`` to its floor
+        while nodes pressed onto one point keep a corner at zero volume). The last restart
+        also frees those nodes from the bone contact.
+    restart_eps : float
+        ``eps`` a restart begins with.
     """
 
     volume_weight: float = 0.5
@@ -258,6 +266,8 @@ class RelaxOptions:
     contact_force_depth: float = 1.0
     contact_clearance: float = 0.2
     polish: bool = True
+    restarts: int = 2
+    restart_eps: float = 0.05
 
 
 @dataclass
@@ -267,6 +277,8 @@ class RelaxReport:
     free_nodes: int = 0
     corners: int = 0
     rounds: int = 0
+    restarts: int = 0
+    contact_released: int = 0
     iterations: int = 0
     evaluations: int = 0
     min_det_before: float = float("nan")
@@ -810,6 +822,7 @@ class ElasticRelaxation:
         rows = np.unique(self._node_rows[free].indices)
         sub = _Subproblem(self, rows, free)
         xl = x[sub.nodes]
+        xl_start = xl.copy()
         _, _, det = sub.energy(xl, 1e-3)
         report.corners = len(sub.tets)
         report.min_det_before = float(det.min())
@@ -825,68 +838,90 @@ class ElasticRelaxation:
         c_local = np.zeros(0, dtype=np.int64)
         c_normals, c_offsets, c_k = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
         sub_free = sub.free
-        rnd_untangled = False
-        for rnd in range(opt.max_rounds):
-            if should_cancel():
-                raise Cancelled("relaxation cancelled")
-            if use_contact and len(contact_global):
-                x[sub.nodes] = xl
-                which, c_normals, c_offsets, _ = self._contact_planes(x, contact_global, transforms)
-                c_global = contact_global[which]
-                c_local = np.searchsorted(sub.nodes, c_global)
-                c_k = stiffness * sub.diagonal[c_local]
-                report.contact_nodes = len(np.unique(c_global))
-            work = xl.copy()
-
-            def fun(
-                flat: NDArray[np.float64],
-                eps: float = eps,
-                c_local: NDArray = c_local,
-                c_normals: NDArray = c_normals,
-                c_offsets: NDArray = c_offsets,
-                c_k: NDArray = c_k,
-                work: NDArray = work,
-            ) -> tuple[float, NDArray]:
-                work[sub_free] = flat.reshape(-1, 3) * scale
-                energy, grad, _ = sub.energy(work, eps)
-                if len(c_local):
-                    gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
-                    # quadratic up to contact_force_depth deep, linear beyond (Huber): a node
-                    # pinched between two bones is pushed with a bounded force, so the
-                    # barrier, not the contact, has the last word
-                    short = np.minimum(gap, 0.0)
-                    limit = opt.contact_force_depth
-                    clipped = np.maximum(short, -limit)
-                    energy += float(
-                        np.sum(c_k * (0.5 * clipped * clipped + limit * (clipped - short)))
+        released = np.zeros(0, dtype=np.int64)
+        for attempt in range(1 + opt.restarts):
+            if attempt:
+                if d_min > 0:
+                    break
+                # the schedule drove eps to its floor with corners still inverted (typically
+                # nodes pressed onto one point while the barrier was soft): put those nodes
+                # back where the pose had them and start again from a soft barrier
+                stuck = self._stuck_nodes(sub, det)
+                xl[stuck] = xl_start[stuck]
+                if attempt == opt.restarts:
+                    # last chance: where bone contact presses the tissue flat (tissue pinched
+                    # between femur and tibia at deep flexion) a valid element matters more
+                    # than a node slightly inside a bone, which the pose report counts
+                    released = np.union1d(released, sub.nodes[stuck])
+                    contact_global = np.setdiff1d(contact_global, released)
+                    report.contact_released = len(released)
+                eps = opt.restart_eps
+                stiffness = opt.untangling_contact_stiffness
+                report.restarts += 1
+            rnd_untangled = False
+            for rnd in range(opt.max_rounds):
+                if should_cancel():
+                    raise Cancelled("relaxation cancelled")
+                if use_contact and len(contact_global):
+                    x[sub.nodes] = xl
+                    which, c_normals, c_offsets, _ = self._contact_planes(
+                        x, contact_global, transforms
                     )
-                    np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
-                return energy, (grad[sub_free] * scale).ravel()
+                    c_global = contact_global[which]
+                    c_local = np.searchsorted(sub.nodes, c_global)
+                    c_k = stiffness * sub.diagonal[c_local]
+                    report.contact_nodes = len(np.unique(c_global))
+                work = xl.copy()
 
-            start = (xl[sub_free] / scale).ravel()
-            before = fun(start)[0]
-            result = minimize_lbfgs(fun, start, opt.iterations_per_round)
-            xl[sub_free] = result.x.reshape(-1, 3) * scale
-            _, _, det = sub.energy(xl, eps)
-            report.rounds = rnd + 1
-            report.iterations += int(result.nit)
-            report.evaluations += int(result.nfev)
-            d_min = float(det.min())
-            after = float(result.fun)
-            report.history.append({"eps": eps, "energy": after, "min_det": d_min})
-            report_progress(0.8 * min(1.0, (rnd + 1) / opt.max_rounds), "relaxing soft tissue")
-            decrease = (before - after) / max(abs(before), 1e-300)
-            # Garanzha et al. 2021: shrink eps as fast as the energy decrease allows
-            sigma = max(1.0 - after / before, opt.eps_decrease) if before > 0 else 1.0
-            chi_min = 0.5 * (d_min + np.sqrt(eps * eps + d_min * d_min))
-            mu = (1.0 - sigma) * chi_min
-            eps = max(float(2.0 * np.sqrt(mu * (mu - d_min))) if d_min < mu else 0.0, 1e-9)
-            stiff_enough = stiffness >= opt.contact_stiffness or not len(c_local)
-            if d_min > 0 and stiff_enough and (decrease < opt.tolerance or rnd_untangled):
-                break
-            rnd_untangled = d_min > 0 and eps <= 1e-9
-            if d_min > 0:
-                stiffness = min(4.0 * stiffness, opt.contact_stiffness)
+                def fun(
+                    flat: NDArray[np.float64],
+                    eps: float = eps,
+                    c_local: NDArray = c_local,
+                    c_normals: NDArray = c_normals,
+                    c_offsets: NDArray = c_offsets,
+                    c_k: NDArray = c_k,
+                    work: NDArray = work,
+                ) -> tuple[float, NDArray]:
+                    work[sub_free] = flat.reshape(-1, 3) * scale
+                    energy, grad, _ = sub.energy(work, eps)
+                    if len(c_local):
+                        gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
+                        # quadratic up to contact_force_depth deep, linear beyond (Huber): a node
+                        # pinched between two bones is pushed with a bounded force, so the
+                        # barrier, not the contact, has the last word
+                        short = np.minimum(gap, 0.0)
+                        limit = opt.contact_force_depth
+                        clipped = np.maximum(short, -limit)
+                        energy += float(
+                            np.sum(c_k * (0.5 * clipped * clipped + limit * (clipped - short)))
+                        )
+                        np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
+                    return energy, (grad[sub_free] * scale).ravel()
+
+                start = (xl[sub_free] / scale).ravel()
+                before = fun(start)[0]
+                result = minimize_lbfgs(fun, start, opt.iterations_per_round)
+                xl[sub_free] = result.x.reshape(-1, 3) * scale
+                _, _, det = sub.energy(xl, eps)
+                report.rounds += 1
+                report.iterations += int(result.nit)
+                report.evaluations += int(result.nfev)
+                d_min = float(det.min())
+                after = float(result.fun)
+                report.history.append({"eps": eps, "energy": after, "min_det": d_min})
+                report_progress(0.8 * min(1.0, (rnd + 1) / opt.max_rounds), "relaxing soft tissue")
+                decrease = (before - after) / max(abs(before), 1e-300)
+                # Garanzha et al. 2021: shrink eps as fast as the energy decrease allows
+                sigma = max(1.0 - after / before, opt.eps_decrease) if before > 0 else 1.0
+                chi_min = 0.5 * (d_min + np.sqrt(eps * eps + d_min * d_min))
+                mu = (1.0 - sigma) * chi_min
+                eps = max(float(2.0 * np.sqrt(mu * (mu - d_min))) if d_min < mu else 0.0, 1e-9)
+                stiff_enough = stiffness >= opt.contact_stiffness or not len(c_local)
+                if d_min > 0 and stiff_enough and (decrease < opt.tolerance or rnd_untangled):
+                    break
+                rnd_untangled = d_min > 0 and eps <= 1e-9
+                if d_min > 0:
+                    stiffness = min(4.0 * stiffness, opt.contact_stiffness)
         x[sub.nodes] = xl
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
@@ -901,6 +936,22 @@ class ElasticRelaxation:
             )
         report.seconds = time.perf_counter() - t0
         return x, report
+
+    @staticmethod
+    def _stuck_nodes(sub: _Subproblem, det: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Local indices of the free nodes of the inverted corners and quads.
+
+        Nodes pressed onto one point while the barrier was soft make ``det J`` and its gradient
+        zero, and the shape term holds them there; the pose had them apart.
+        """
+        c = len(sub.tets)
+        corner_nodes = sub.tets[det[:c] <= 0].ravel()  # may name virtual nodes (>= m)
+        quad_nodes = sub.quads[np.flatnonzero(det[c:] <= 0) % max(len(sub.quads), 1)].ravel()
+        bad = np.concatenate([corner_nodes, quad_nodes])
+        bad = np.unique(bad[bad < sub.m])
+        is_free = np.zeros(sub.m, dtype=bool)
+        is_free[sub.free] = True
+        return bad[is_free[bad]]
 
     def _polish(
         self,

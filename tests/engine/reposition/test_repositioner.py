@@ -93,6 +93,17 @@ def test_no_inverted_elements(small_leg, small_posed, angle):
     assert result.relaxation.min_det_after > 0
 
 
+def test_deep_flexion_is_untangled_by_restarting(small_leg, small_posed):
+    # at 130 deg the tissue behind the plateau is pinched between tibia and femur; the first
+    # rounds end with three nodes pressed onto one point (2 inverted elements without the
+    # restarts), the restarts put them back and the last one frees them from the contact
+    result = small_posed(130.0)
+    q = compute_quality(result.coords, small_leg.model.blocks)
+    assert result.relaxation.restarts >= 1
+    assert result.relaxation.contact_released > 0
+    assert q.n_inverted == 0
+
+
 @pytest.mark.xfail(strict=True, reason=WORST_JACOBIAN_GAP)
 def test_worst_jacobian_at_90_is_at_least_90_percent_of_the_initial(small_leg, small_posed):
     initial = compute_quality(small_leg.model.coords, small_leg.model.blocks).worst_jacobian()
