@@ -268,6 +268,7 @@ class RelaxOptions:
     polish: bool = True
     restarts: int = 2
     restart_eps: float = 0.05
+    slide_skin: bool = True
 
 
 @dataclass
@@ -578,6 +579,10 @@ class ElasticRelaxation:
         Nodes that move with a bone; tissue next to them may go as deep into a bone as they do.
     quads : (Q, 4) ndarray of int, optional
         Quad shells whose corner determinants are kept positive (skin, capsule, tendon).
+    sliding : (L,) ndarray of int, optional
+        Free nodes on the outer surface (the skin) that only slide in their surface's tangent
+        plane of the pose being relaxed (``options.slide_skin``): the mapping's smooth crease
+        behind a flexed knee keeps its shape instead of being pulled into a fold.
     region_radius : float
         Besides ``options.rings`` mesh edges, the relaxed region takes every free node within
         this distance (model units) of a seed: a fold needs room in millimetres, not in
@@ -602,6 +607,7 @@ class ElasticRelaxation:
         attached: NDArray[np.int64] | None = None,
         quads: NDArray[np.int64] | None = None,
         region_radius: float = 0.0,
+        sliding: NDArray[np.int64] | None = None,
         blocks: Mapping[str, ElementBlock] | None = None,
         goals: Mapping[str, NDArray[np.float64]] | None = None,
     ) -> None:
@@ -669,6 +675,8 @@ class ElasticRelaxation:
             rest_det = corner_determinants(self.rest[quads], "quad4")
             quads = quads[(rest_det > 0).all(axis=1) & self.is_free[quads].any(axis=1)]
         self.quads = quads.astype(np.int64)
+        sliding = np.zeros(0, dtype=np.int64) if sliding is None else np.asarray(sliding)
+        self.sliding = np.intersect1d(sliding.astype(np.int64), self.free)
         # tissue next to an attachment may go as deep into another bone as the attachment
         # itself (a patella pressed into the trochlea): holding it out would tear the elements
         # between the attachment and the contact plane
@@ -838,6 +846,7 @@ class ElasticRelaxation:
         c_local = np.zeros(0, dtype=np.int64)
         c_normals, c_offsets, c_k = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
         sub_free = sub.free
+        slide_rows, slide_normals = self._sliding_rows(x, sub)
         released = np.zeros(0, dtype=np.int64)
         for attempt in range(1 + opt.restarts):
             if attempt:
@@ -896,7 +905,11 @@ class ElasticRelaxation:
                             np.sum(c_k * (0.5 * clipped * clipped + limit * (clipped - short)))
                         )
                         np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
-                    return energy, (grad[sub_free] * scale).ravel()
+                    g_free = grad[sub_free]
+                    if len(slide_rows):  # tangential only: L-BFGS then stays in those planes
+                        along = np.einsum("ij,ij->i", g_free[slide_rows], slide_normals)
+                        g_free[slide_rows] -= along[:, None] * slide_normals
+                    return energy, (g_free * scale).ravel()
 
                 start = (xl[sub_free] / scale).ravel()
                 before = fun(start)[0]
@@ -953,6 +966,27 @@ class ElasticRelaxation:
         is_free[sub.free] = True
         return bad[is_free[bad]]
 
+    def _sliding_rows(
+        self, x: NDArray[np.float64], sub: _Subproblem
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Rows of ``sub.free`` that slide, and their unit surface normals at ``x`` (area-weighted
+        over the quads around each node)."""
+        if not self.options.slide_skin or len(self.sliding) == 0 or len(self.quads) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        free_global = sub.nodes[sub.free]
+        rows = np.flatnonzero(np.isin(free_global, self.sliding))
+        if len(rows) == 0:
+            return rows, np.zeros((0, 3))
+        p = x[self.quads]
+        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])  # twice the area, outward
+        acc = np.zeros((self.n_nodes, 3))
+        for k in range(4):
+            np.add.at(acc, self.quads[:, k], normal)
+        n = acc[free_global[rows]]
+        length = np.linalg.norm(n, axis=1)
+        ok = length > 0
+        return rows[ok], n[ok] / length[ok, None]
+
     def _polish(
         self,
         x: NDArray[np.float64],
@@ -986,10 +1020,12 @@ class ElasticRelaxation:
                 return ok
 
         goals = self.goals if self.goals is not None else 0.6
+        sliding = self.sliding[np.isin(self.sliding, free)] if self.options.slide_skin else None
         x, report.polish = smooth_mesh(
             x,
             self.blocks,
-            free,
+            free if sliding is None else np.setdiff1d(free, sliding),
+            sliding_nodes=sliding,
             target=goals,
             position_guard=guard,
             progress=progress,

@@ -112,6 +112,11 @@ class RepositionOptions:
         ``contact_reach = 0`` (the default) turns contact off; 0.25 is a good value when
         penetrations matter more than element quality (see :mod:`kneegui.reposition.contact`
         and docs/repositioning.md for the measured trade-off).
+    relax_contact_reach : float
+        Before the relaxation (the export, never the slider), the same push out of the bones
+        with this reach, so that the relaxation starts with the tissue outside the bones and the
+        push spread smoothly through the tissue behind it (0 turns it off; ignored when
+        ``contact_reach`` already applies it to every pose).
     """
 
     method: str = "blend"
@@ -125,6 +130,7 @@ class RepositionOptions:
     coupling_radii: tuple[float, float] = (2.5, 4.5)
     contact_reach: float = 0.0
     contact_clearance: float = 0.5
+    relax_contact_reach: float = 0.75
     relax: bool = True
     relax_reach: float = 5.0
     relax_region: float = 1.0
@@ -312,8 +318,9 @@ class Repositioner:
         self._contact: BoneContact | None = None
         if self.options.contact_reach > 0:
             t = self._stage("bone contact", 0.85)
-            self._contact = self._bone_contact()
+            self._contact = self._bone_contact(self.options.contact_reach)
             self._end("bone contact", t)
+        self._relax_contact: BoneContact | None = None  # built on first use, like the relaxation
         # the relaxation's precompute is left to its first use: the slider never needs it, and
         # on a 1M-element model it costs more than everything above
         self.relaxation: ElasticRelaxation | None = None
@@ -430,11 +437,12 @@ class Repositioner:
             attached=np.concatenate([g.segment[s] for s in ("femur", "tibia", "patella")]),
             quads=model.blocks["quad4"].conn[shells["quad4"]] if "quad4" in shells else None,
             region_radius=self.options.relax_region * size,
+            sliding=g.skin,
             blocks=model.blocks,
             goals=smoothing_goals(compute_quality(model.coords, model.blocks)),
         )
 
-    def _bone_contact(self) -> BoneContact:
+    def _bone_contact(self, reach: float) -> BoneContact:
         model, setup, g = self.model, self.setup, self.groups
         triangles = self._bone_triangles()
         soft_parts = np.array(setup.parts_of(*SOFT_ROLES), dtype=np.int64)
@@ -445,7 +453,7 @@ class Repositioner:
             triangles,
             g.soft,
             mesh_edges(model.blocks, masks),
-            reach=self.options.contact_reach * size,
+            reach=reach * size,
             clearance=self.options.contact_clearance,
         )
 
@@ -577,6 +585,15 @@ class Repositioner:
             self.timings_s["relaxation"] = time.perf_counter() - t
         if not isinstance(bone, BonePose):
             bone = self.bone_pose(float(bone))
+        if self._contact is None and self.options.relax_contact_reach > 0:
+            # push the tissue the mapping put into the bones back out first, spread through
+            # the tissue behind it: the relaxation then starts from a pose outside the bones
+            if self._relax_contact is None:
+                t = time.perf_counter()
+                self._relax_contact = self._bone_contact(self.options.relax_contact_reach)
+                self.timings_s["relaxation contact"] = time.perf_counter() - t
+            coords = np.array(coords, dtype=np.float64, copy=True)
+            self._relax_contact.resolve(coords, bone.transforms)
         return self.relaxation.relax(coords, bone.transforms, progress, cancel)
 
     def bone_overlap(self, bone: BonePose | float) -> list[BoneOverlap]:

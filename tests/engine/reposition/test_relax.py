@@ -215,3 +215,30 @@ def test_lbfgs_result_does_not_depend_on_the_blas_thread_count():
         )
         digests.add(run.stdout.strip())
     assert len(digests) == 1
+
+
+def test_sliding_nodes_move_only_in_their_surface_plane():
+    coords, blocks, boundary, node = hex_block(4)
+    n = 4
+    top = np.flatnonzero(np.isclose(coords[:, 2], n * 10.0))
+    side = np.flatnonzero(((coords[:, :2] == 0) | (coords[:, :2] == n * 10.0)).any(axis=1))
+    sliding = np.setdiff1d(top, side)  # the top face's inner nodes
+    free = np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding)
+    moved = coords.copy()
+    moved[node(2, 2, 3)] += [6.0, 5.0, 0.0]  # a poor interior node pulls on the top face
+    moved[node(2, 2, 4)] += [4.0, -3.0, 0.0]  # and one top node slid off its place
+    common = {"rings": 4, "seed_shape": 1.01, "polish": False}
+    solids = {"hex8": np.ones(len(blocks["hex8"].ids), bool)}
+    slid, report = ElasticRelaxation(
+        coords,
+        corner_tetrahedra(blocks, solids),
+        free,
+        options=RelaxOptions(**common),
+        quads=blocks["quad4"].conn,  # the surface the nodes slide on
+        sliding=sliding,
+    ).relax(moved)
+    unconstrained = relaxation(coords, blocks, free, **common).relax(moved)[0]
+    assert report.free_nodes > 0
+    np.testing.assert_allclose(slid[sliding, 2], moved[sliding, 2], atol=1e-9)
+    assert np.abs(slid[sliding, :2] - moved[sliding, :2]).max() > 0.5  # they did slide
+    assert np.abs(unconstrained[sliding, 2] - moved[sliding, 2]).max() > 1e-4  # free ones leave
