@@ -133,8 +133,8 @@ class BoneContact:
     ----------
     coords : (N, 3) ndarray
         Initial coordinates.
-    bone_triangles : mapping of segment name to (T, 3) ndarray of int
-        Outward-oriented outer surface triangles of each rigid segment.
+    bone_surfaces : mapping of segment name to BoneSurfaceDistance
+        Rest surface of each rigid segment (shared with the relaxation and the overlap check).
     soft : (S,) ndarray of int
         Soft-tissue nodes that move by mapping.
     edges : (E, 2) ndarray of int
@@ -146,15 +146,12 @@ class BoneContact:
         it was closer at rest).
     """
 
-    def __init__(self, coords, bone_triangles, soft, edges, reach: float, clearance: float):
+    def __init__(self, coords, bone_surfaces, soft, edges, reach: float, clearance: float):
         self.reach = reach
         soft = np.asarray(soft, dtype=np.int64)
         near = np.zeros(len(soft), dtype=bool)
         distances = []
-        for segment, tris in bone_triangles.items():
-            if len(tris) == 0:
-                continue
-            distance = BoneSurfaceDistance(coords[tris])
+        for segment, distance in bone_surfaces.items():
             d, _ = distance.tree.query(coords[soft], distance_upper_bound=reach)
             near |= np.isfinite(d)
             distances.append((segment, distance))

@@ -405,8 +405,8 @@ class Repositioner:
         return triangles
 
     def _bone_surfaces(self) -> dict[str, BoneSurfaceDistance]:
-        """Each moving segment's rest surface for distance queries, built once (the relaxation's
-        contact and the bone-overlap check share it)."""
+        """Each moving segment's rest surface for distance queries, built once (the bone contact,
+        the relaxation's contact and the bone-overlap check share it)."""
         if self._surfaces is None:
             self._surfaces = {
                 name: BoneSurfaceDistance(self.model.coords[tris])
@@ -444,13 +444,12 @@ class Repositioner:
 
     def _bone_contact(self, reach: float) -> BoneContact:
         model, setup, g = self.model, self.setup, self.groups
-        triangles = self._bone_triangles()
         soft_parts = np.array(setup.parts_of(*SOFT_ROLES), dtype=np.int64)
         masks = {etype: np.isin(b.part_ids, soft_parts) for etype, b in model.blocks.items()}
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         return BoneContact(
             model.coords,
-            triangles,
+            self._bone_surfaces(),
             g.soft,
             mesh_edges(model.blocks, masks),
             reach=reach * size,
