@@ -315,6 +315,7 @@ class Repositioner:
             if method == "paper" and len(self.groups.band):
                 self._band_embedding = embed_nodes(coords, self.groups.skin, self.groups.band)
             self._end("delaunay embedding", t)
+        self._surfaces: dict[str, BoneSurfaceDistance] | None = None  # built on first use
         self._contact: BoneContact | None = None
         if self.options.contact_reach > 0:
             t = self._stage("bone contact", 0.85)
@@ -324,7 +325,6 @@ class Repositioner:
         # the relaxation's precompute is left to its first use: the slider never needs it, and
         # on a 1M-element model it costs more than everything above
         self.relaxation: ElasticRelaxation | None = None
-        self._surfaces: dict[str, BoneSurfaceDistance] | None = None
         self._overlap_check: BoneOverlapCheck | None = None
         self._progress(1.0, "ready")
 
