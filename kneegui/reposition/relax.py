@@ -848,6 +848,40 @@ class ElasticRelaxation:
         sub_free = sub.free
         slide_rows, slide_normals = self._sliding_rows(x, sub)
         released = np.zeros(0, dtype=np.int64)
+
+        def objective(
+            eps: float,
+            c_local: NDArray,
+            c_normals: NDArray,
+            c_offsets: NDArray,
+            c_k: NDArray,
+        ) -> Callable[[NDArray[np.float64]], tuple[float, NDArray]]:
+            """The energy over the scaled free variables, with these contact planes."""
+            work = xl.copy()
+
+            def fun(flat: NDArray[np.float64]) -> tuple[float, NDArray]:
+                work[sub_free] = flat.reshape(-1, 3) * scale
+                energy, grad, _ = sub.energy(work, eps)
+                if len(c_local):
+                    gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
+                    # quadratic up to contact_force_depth deep, linear beyond (Huber): a node
+                    # pinched between two bones is pushed with a bounded force, so the
+                    # barrier, not the contact, has the last word
+                    short = np.minimum(gap, 0.0)
+                    limit = opt.contact_force_depth
+                    clipped = np.maximum(short, -limit)
+                    energy += float(
+                        np.sum(c_k * (0.5 * clipped * clipped + limit * (clipped - short)))
+                    )
+                    np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
+                g_free = grad[sub_free]
+                if len(slide_rows):  # tangential only: L-BFGS then stays in those planes
+                    along = np.einsum("ij,ij->i", g_free[slide_rows], slide_normals)
+                    g_free[slide_rows] -= along[:, None] * slide_normals
+                return energy, (g_free * scale).ravel()
+
+            return fun
+
         for attempt in range(1 + opt.restarts):
             if attempt:
                 if d_min > 0:
@@ -880,37 +914,7 @@ class ElasticRelaxation:
                     c_local = np.searchsorted(sub.nodes, c_global)
                     c_k = stiffness * sub.diagonal[c_local]
                     report.contact_nodes = len(np.unique(c_global))
-                work = xl.copy()
-
-                def fun(
-                    flat: NDArray[np.float64],
-                    eps: float = eps,
-                    c_local: NDArray = c_local,
-                    c_normals: NDArray = c_normals,
-                    c_offsets: NDArray = c_offsets,
-                    c_k: NDArray = c_k,
-                    work: NDArray = work,
-                ) -> tuple[float, NDArray]:
-                    work[sub_free] = flat.reshape(-1, 3) * scale
-                    energy, grad, _ = sub.energy(work, eps)
-                    if len(c_local):
-                        gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
-                        # quadratic up to contact_force_depth deep, linear beyond (Huber): a node
-                        # pinched between two bones is pushed with a bounded force, so the
-                        # barrier, not the contact, has the last word
-                        short = np.minimum(gap, 0.0)
-                        limit = opt.contact_force_depth
-                        clipped = np.maximum(short, -limit)
-                        energy += float(
-                            np.sum(c_k * (0.5 * clipped * clipped + limit * (clipped - short)))
-                        )
-                        np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
-                    g_free = grad[sub_free]
-                    if len(slide_rows):  # tangential only: L-BFGS then stays in those planes
-                        along = np.einsum("ij,ij->i", g_free[slide_rows], slide_normals)
-                        g_free[slide_rows] -= along[:, None] * slide_normals
-                    return energy, (g_free * scale).ravel()
-
+                fun = objective(eps, c_local, c_normals, c_offsets, c_k)
                 start = (xl[sub_free] / scale).ravel()
                 before = fun(start)[0]
                 result = minimize_lbfgs(fun, start, opt.iterations_per_round)
