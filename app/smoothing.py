@@ -33,10 +33,13 @@ def smooth_current(
     progress: Callable[[float, str], None],
     cancelled: Callable[[], bool],
     relax: Callable[..., tuple[NDArray[np.float64], RelaxReport]] | None = None,
+    bone_guard: Callable[[NDArray[np.float64]], Callable[..., NDArray[np.bool_]]] | None = None,
 ) -> SmoothingOutcome:
     """Relax (``relax(coords, progress, cancelled)``, e.g. a bound
     :meth:`kneegui.reposition.Repositioner.relax`) and smooth the soft tissue of ``model`` at
-    ``coords`` around its degraded elements."""
+    ``coords`` around its degraded elements; ``bone_guard(coords)`` (e.g.
+    :meth:`kneegui.reposition.Repositioner.bone_depth_guard` at the pose's flexion) gives the
+    smoother's position guard that keeps the tissue out of the bones."""
     from kneegui.smoothing.pipeline import smooth_posed_model
 
     if setup is None:
@@ -72,6 +75,7 @@ def smooth_current(
         initial=model,
         progress=smooth_progress,
         cancel=cancelled,
+        position_guard=None if bone_guard is None else bone_guard(coords),
     )
     message = relaxed + (
         f"smoothed: {report.moved_nodes} nodes moved, worst Jacobian "

@@ -790,9 +790,20 @@ class Workspace(QObject):
         def relax_pose(x, progress, cancelled):
             return poser.relax(x, flexion, progress, cancelled)
 
+        guard_for = getattr(poser, "bone_depth_guard", None)  # a Repositioner's
+
+        def bone_guard(x):
+            return guard_for(x, flexion)
+
         def work(progress, cancelled):
             outcome = smooth_current(
-                model, coords, setup, progress, cancelled, relax_pose if relax else None
+                model,
+                coords,
+                setup,
+                progress,
+                cancelled,
+                relax_pose if relax else None,
+                bone_guard if guard_for is not None else None,
             )
             bone_overlap = getattr(poser, "bone_overlap", None)  # a Repositioner's
             if bone_overlap is None:

@@ -8,6 +8,13 @@ triangles around the nearest surface node), and if it is closer to the surface t
 (up to ``clearance``) it is pushed out along the surface normal. The pushes are then extended
 smoothly into the other soft-tissue nodes by a Laplace solve (factorised once), so the tissue
 behind a pushed node moves with it instead of being crushed: the paper's "local stretching".
+
+A node carried deep into a bone is not sent to the nearest surface point: from 10 mm inside a
+tibial condyle the nearest point may be on the plateau for one node and on the posterior wall for
+its neighbour, which tears the element between them. It goes back along the straight way to its
+rest place relative to that bone (outside it at rest) and stops where that way leaves the bone.
+
+:class:`BoneDepthGuard` keeps the smoother from pushing tissue into a bone.
 """
 
 from __future__ import annotations
@@ -144,10 +151,25 @@ class BoneContact:
     clearance : float
         The largest rest clearance a candidate is held to (closer than this is allowed only if
         it was closer at rest).
+    ray_depth : (float, float), optional
+        Depths (model units) between which the place a pushed node leaves the bone changes from
+        the nearest surface point to the point where the segment from the node back to its rest
+        place (in that bone's frame) leaves the bone. Default: always the nearest point.
     """
 
-    def __init__(self, coords, bone_surfaces, soft, edges, reach: float, clearance: float):
+    def __init__(
+        self,
+        coords,
+        bone_surfaces,
+        soft,
+        edges,
+        reach: float,
+        clearance: float,
+        ray_depth: tuple[float, float] | None = None,
+    ):
         self.reach = reach
+        self.ray_depth = ray_depth
+        self.rest = np.asarray(coords, dtype=np.float64)
         soft = np.asarray(soft, dtype=np.int64)
         near = np.zeros(len(soft), dtype=bool)
         distances = []
@@ -199,6 +221,24 @@ class BoneContact:
                 shape=(len(free), len(self.candidates)),
             )
 
+    def _ray_target(self, srf, local, rows, depth, nearest):
+        """Deep nodes go back towards their rest place along the way they came, where they
+        leave the bone (their neighbours then leave it at neighbouring places); shallow ones
+        to the nearest surface point; blended between the two depths of ``ray_depth``."""
+        lo, hi = self.ray_depth
+        rest = self.rest[self.candidates[rows]]
+        floor = srf.floor[rows]
+        a, b = np.zeros(len(rows)), np.ones(len(rows))
+        for _ in range(14):
+            mid = 0.5 * (a + b)
+            d = srf.distance.query(local + mid[:, None] * (rest - local))[0]
+            out = d >= floor
+            b = np.where(out, mid, b)
+            a = np.where(out, a, mid)
+        ray = local + b[:, None] * (rest - local)
+        s = np.clip((-depth - lo) / max(hi - lo, 1e-12), 0.0, 1.0)[:, None]
+        return (1.0 - s) * nearest + s * ray
+
     def resolve(
         self, positions: NDArray[np.float64], transforms: Mapping[str, RigidTransform]
     ) -> int:
@@ -220,6 +260,10 @@ class BoneContact:
                 direction = np.where(norm > 1e-12, direction / np.maximum(norm, 1e-300), 0.0)
                 direction *= np.sign(depth[bad])[:, None]
                 target = q[bad] + srf.floor[bad][:, None] * direction
+                if self.ray_depth is not None:
+                    target = self._ray_target(
+                        srf, local[bad], np.flatnonzero(bad), depth[bad], target
+                    )
                 push[bad] += t.apply_vector(target - local[bad])
         moved = np.flatnonzero(np.linalg.norm(push, axis=1) > 0)
         if len(moved) == 0:
@@ -228,3 +272,68 @@ class BoneContact:
         if len(self.free):
             positions[self.free] += self._solve(self._coupling @ push)
         return len(moved)
+
+
+class BoneDepthGuard:
+    """Position guard for the smoother: no soft-tissue node goes deeper into a bone than it is.
+
+    A node outside every bone in the pose being smoothed must stay outside; a node already inside
+    one (the pose put it there) may not go deeper. Used as ``position_guard`` of
+    :func:`kneegui.smoothing.smooth_mesh`: the smoother then only keeps moves that respect it, so
+    smoothing can no longer buy a better Jacobian by pushing tissue into a bone.
+
+    Parameters
+    ----------
+    surfaces : mapping of segment name to BoneSurfaceDistance
+        Rest surface of each rigid segment.
+    transforms : mapping of segment name to RigidTransform
+        The bones' pose (segments without a transform are ignored).
+    start_coords : (N, 3) ndarray
+        All node coordinates of the pose before smoothing.
+    """
+
+    def __init__(
+        self,
+        surfaces: Mapping[str, BoneSurfaceDistance],
+        transforms: Mapping[str, RigidTransform],
+        start_coords: NDArray[np.float64],
+    ) -> None:
+        self._bones = [
+            (surface, transforms[name].inverse())
+            for name, surface in surfaces.items()
+            if name in transforms
+        ]
+        self.start = np.array(start_coords, dtype=np.float64, copy=True)
+        # each node's smallest signed distance to a bone at the start, measured on first use
+        self._start_depth = np.full((len(self.start), len(self._bones)), np.nan)
+
+    def depths(self, nodes: NDArray[np.int64], coords: NDArray[np.float64]) -> NDArray:
+        """Signed distances (len(nodes), bones) of ``coords`` (one row per node)."""
+        out = np.empty((len(nodes), len(self._bones)))
+        for j, (surface, to_rest) in enumerate(self._bones):
+            out[:, j] = surface.query(to_rest.apply(coords))[0]
+        return out
+
+    def start_depth(self, nodes: NDArray[np.int64]) -> NDArray[np.float64]:
+        """(len(nodes), bones) signed distances of the nodes at the start (+ outside)."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        todo = np.unique(nodes[np.isnan(self._start_depth[nodes, 0])]) if self._bones else []
+        if len(todo):
+            self._start_depth[todo] = self.depths(todo, self.start[todo])
+        return self._start_depth[nodes]
+
+    def __call__(self, nodes: NDArray[np.int64], coords: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which of ``nodes`` may sit where ``coords`` (all nodes, trial positions) puts them."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        ok = np.ones(len(nodes), dtype=bool)
+        if not self._bones or len(nodes) == 0:
+            return ok
+        start = self.start_depth(nodes)
+        # a distance changes no faster than the point moves: a node that moved less than its
+        # clearance from every bone is still outside (no query needed)
+        moved = np.linalg.norm(coords[nodes] - self.start[nodes], axis=1)
+        check = np.flatnonzero(moved >= start.min(axis=1))
+        if len(check):
+            now = self.depths(nodes[check], coords[nodes[check]])
+            ok[check] = (now >= np.minimum(start[check], 0.0) - 1e-9).all(axis=1)
+        return ok

@@ -127,6 +127,7 @@ def pose_model(
             initial_q,
             progress=smoothing_progress,
             cancel=cancel,
+            position_guard=repositioner.bone_depth_guard(posed.coords, result.bone_pose),
         )
         timings["smoothing"] = time.perf_counter() - t
         final_q = compute_quality(final.coords, final.blocks)

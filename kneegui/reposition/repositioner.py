@@ -36,7 +36,7 @@ from kneegui.model import Model
 from kneegui.quality import compute_quality
 from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
-from kneegui.reposition.contact import BoneContact, BoneSurfaceDistance
+from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
 from kneegui.reposition.embedding import Embedding, embed_nodes
 from kneegui.reposition.relax import (
     ElasticRelaxation,
@@ -117,6 +117,13 @@ class RepositionOptions:
         with this reach, so that the relaxation starts with the tissue outside the bones and the
         push spread smoothly through the tissue behind it (0 turns it off; ignored when
         ``contact_reach`` already applies it to every pose).
+    push_ray_depth : (float, float) or None
+        How the push chooses where a node leaves the bone, by its depth in mean condyle radii:
+        shallower than the first value, at the nearest surface point (it slides on the bone);
+        deeper than the second, where the straight way back to its rest place relative to that
+        bone leaves it (the mapping carried it in along a smooth field, so neighbours leave at
+        neighbouring places instead of at opposite faces of the bone); blended in between.
+        ``None``: always the nearest point.
     """
 
     method: str = "blend"
@@ -131,6 +138,7 @@ class RepositionOptions:
     contact_reach: float = 0.0
     contact_clearance: float = 0.5
     relax_contact_reach: float = 0.75
+    push_ray_depth: tuple[float, float] | None = (0.05, 0.15)
     relax: bool = True
     relax_reach: float = 5.0
     relax_region: float = 1.0
@@ -151,6 +159,14 @@ class RepositionOptions:
                 "zone_factor > 0, max_scale >= 1 and 0 <= clearance_fraction < 1 are required",
                 key="options",
             )
+        if self.push_ray_depth is not None:
+            lo, hi = self.push_ray_depth
+            if not 0 <= lo <= hi:
+                raise SetupError(
+                    f"push_ray_depth must be (shallow, deep) with 0 <= shallow <= deep, got "
+                    f"{self.push_ray_depth!r}",
+                    key="push_ray_depth",
+                )
 
 
 @dataclass(frozen=True)
@@ -454,6 +470,9 @@ class Repositioner:
             mesh_edges(model.blocks, masks),
             reach=reach * size,
             clearance=self.options.contact_clearance,
+            ray_depth=None
+            if self.options.push_ray_depth is None
+            else tuple(k * size for k in self.options.push_ray_depth),
         )
 
     # ---------------------------------------------------------------------- posing
@@ -594,6 +613,22 @@ class Repositioner:
             coords = np.array(coords, dtype=np.float64, copy=True)
             self._relax_contact.resolve(coords, bone.transforms)
         return self.relaxation.relax(coords, bone.transforms, progress, cancel)
+
+    def bone_depth_guard(
+        self, coords: NDArray[np.float64], bone: BonePose | float
+    ) -> BoneDepthGuard:
+        """A smoother position guard that keeps the tissue of a pose out of the bones.
+
+        Parameters
+        ----------
+        coords : (N, 3) ndarray
+            The pose about to be smoothed.
+        bone : BonePose or float
+            The bones' pose, or the flexion (degrees) to solve it for.
+        """
+        if not isinstance(bone, BonePose):
+            bone = self.bone_pose(float(bone))
+        return BoneDepthGuard(self._bone_surfaces(), bone.transforms, coords)
 
     def bone_overlap(self, bone: BonePose | float) -> list[BoneOverlap]:
         """How deep each rigid segment's surface lies inside another's in a pose (deepest

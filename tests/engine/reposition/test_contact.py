@@ -1,0 +1,92 @@
+"""Bone contact and the smoother's bone guard: exact pushes on a cube, and the demo's export."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kneegui.geometry.transforms import RigidTransform
+from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
+from kneegui.reposition.pipeline import pose_model
+
+# a 10 mm cube's outer surface as 12 outward triangles over its 8 corners
+CUBE = 10.0 * np.array(
+    [[x, y, z] for z in (0.0, 1.0) for y in (0.0, 1.0) for x in (0.0, 1.0)], dtype=np.float64
+)
+QUADS = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+TRIANGLES = np.array([t for a, b, c, d in QUADS for t in ((a, b, c), (a, c, d))])
+IDENTITY = RigidTransform(np.eye(3), np.zeros(3))
+
+
+def cube_contact(rest_node, ray_depth=None, clearance=0.2):
+    coords = np.vstack([CUBE, rest_node])
+    surfaces = {"bone": BoneSurfaceDistance(CUBE[TRIANGLES])}
+    contact = BoneContact(
+        coords,
+        surfaces,
+        np.array([8]),
+        np.zeros((0, 2), dtype=np.int64),
+        10.0,
+        clearance,
+        ray_depth=ray_depth,
+    )
+    return coords, contact
+
+
+def test_a_shallow_node_goes_to_the_nearest_surface_point():
+    coords, contact = cube_contact([-0.5, 5.0, 8.0], ray_depth=(2.0, 3.0))
+    posed = coords.copy()
+    posed[8] = [4.0, 5.0, 8.5]  # 1.5 below the top face, 4 inside the side face
+    assert contact.resolve(posed, {"bone": IDENTITY}) == 1
+    np.testing.assert_allclose(posed[8], [4.0, 5.0, 10.2], atol=1e-9)
+
+
+def test_a_deep_node_leaves_the_bone_on_its_way_back_to_its_rest_place():
+    # nearest point: the top face; the way back to the rest place leaves through the side face
+    coords, contact = cube_contact([-0.5, 5.0, 8.0], ray_depth=(0.5, 1.0))
+    posed = coords.copy()
+    posed[8] = [4.0, 5.0, 8.5]
+    contact.resolve(posed, {"bone": IDENTITY})
+    t = (4.0 + 0.2) / 4.5  # where x reaches -clearance on the segment to (-0.5, 5, 8)
+    np.testing.assert_allclose(posed[8], [-0.2, 5.0, 8.5 - 0.5 * t], atol=1e-3)
+    # halfway between the two depths: halfway between the two places
+    coords, contact = cube_contact([-0.5, 5.0, 8.0], ray_depth=(1.0, 2.0))
+    half = coords.copy()
+    half[8] = [4.0, 5.0, 8.5]
+    contact.resolve(half, {"bone": IDENTITY})
+    np.testing.assert_allclose(half[8], 0.5 * (posed[8] + [4.0, 5.0, 10.2]), atol=1e-3)
+
+
+def test_the_guard_keeps_outside_nodes_outside_and_inside_ones_from_going_deeper():
+    start = np.vstack([CUBE, [[5.0, 5.0, 11.0], [5.0, 5.0, 9.0]]])  # 1 above, 1 inside
+    guard = BoneDepthGuard(
+        {"bone": BoneSurfaceDistance(CUBE[TRIANGLES])}, {"bone": IDENTITY}, start
+    )
+    trial = start.copy()
+    trial[8] = [5.0, 5.0, 10.5]  # still outside
+    trial[9] = [5.0, 5.0, 9.5]  # less deep
+    assert guard(np.array([8, 9]), trial).tolist() == [True, True]
+    trial[8] = [5.0, 5.0, 9.9]  # into the bone
+    trial[9] = [5.0, 5.0, 8.0]  # deeper
+    assert guard(np.array([8, 9]), trial).tolist() == [False, False]
+    # the bone moved up 3: the start depths are taken in the pose the guard was made for
+    lifted = RigidTransform(np.eye(3), np.array([0.0, 0.0, 3.0]))
+    guard = BoneDepthGuard({"bone": BoneSurfaceDistance(CUBE[TRIANGLES])}, {"bone": lifted}, start)
+    trial = start.copy()
+    trial[8] = [5.0, 5.0, 10.5]  # was 2 inside the lifted cube, now 2.5: deeper
+    assert guard(np.array([8]), trial).tolist() == [False]
+
+
+@pytest.mark.parametrize("angle", [90.0])
+def test_smoothing_the_export_pushes_no_tissue_into_a_bone(small_repositioner, angle):
+    # the smoother used to buy better Jacobians by moving tissue into the tibia
+    # (default demo at 90 deg: 2 nodes deeper than 0.5 mm relaxed, 20 after smoothing)
+    rep = small_repositioner
+    relaxed = rep.pose_detailed(angle, remeasure=False)
+    posed = pose_model(rep, angle, smooth=True)
+    moved = np.flatnonzero(np.any(posed.model.coords != relaxed.coords, axis=1))
+    assert len(moved) > 0  # the smoother did something
+    guard = rep.bone_depth_guard(relaxed.coords, relaxed.bone_pose)
+    before = guard.start_depth(moved)
+    after = guard.depths(moved, posed.model.coords[moved])
+    assert np.all(after >= np.minimum(before, 0.0) - 1e-9)
