@@ -248,6 +248,14 @@ class RelaxOptions:
         also frees those nodes from the bone contact.
     restart_eps : float
         ``eps`` a restart begins with.
+    slide_skin : bool or None
+        Skin nodes move only in the tangent plane of the pose being relaxed (the sliding nodes
+        given to :class:`ElasticRelaxation`). ``None`` (no sliding for
+        :class:`ElasticRelaxation` itself): :class:`kneegui.reposition.Repositioner` slides
+        the skin for the ``blend`` method, whose skin is the mapped surface, and frees it for
+        ``paper`` and ``hybrid``, whose contour-placed skin can fold and must be free to
+        unfold (the default demo at 60 deg with ``paper``: 80 elements left inverted with a
+        sliding skin, none with a free one).
     """
 
     volume_weight: float = 0.5
@@ -268,7 +276,7 @@ class RelaxOptions:
     polish: bool = True
     restarts: int = 2
     restart_eps: float = 0.05
-    slide_skin: bool = True
+    slide_skin: bool | None = None
 
 
 @dataclass

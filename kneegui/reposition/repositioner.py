@@ -138,7 +138,7 @@ class RepositionOptions:
     contact_reach: float = 0.0
     contact_clearance: float = 0.5
     relax_contact_reach: float = 0.75
-    push_ray_depth: tuple[float, float] | None = (0.05, 0.15)
+    push_ray_depth: tuple[float, float] | None = (0.05, 0.3)
     relax: bool = True
     relax_reach: float = 5.0
     relax_region: float = 1.0
@@ -443,12 +443,15 @@ class Repositioner:
         radial = rel - np.outer(rel @ axis.direction, axis.direction)
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         free = g.soft[np.linalg.norm(radial, axis=1) < self.options.relax_reach * size]
+        options = self.options.relaxation
+        if options.slide_skin is None:
+            options = replace(options, slide_skin=self.options.method == "blend")
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
             free,
             self._bone_surfaces(),
-            options=self.options.relaxation,
+            options=options,
             virtual=virtual,
             attached=np.concatenate([g.segment[s] for s in ("femur", "tibia", "patella")]),
             quads=model.blocks["quad4"].conn[shells["quad4"]] if "quad4" in shells else None,

@@ -207,6 +207,10 @@ def test_other_methods_run_and_reach_the_angle(small_leg, small_setup, method):
     assert result.skin is not None and result.skin.half_angle_deg == pytest.approx(
         (60.0 - rep.initial_flexion) / 2, abs=1.0
     )
+    # their contour-placed skin folds and is left free in the relaxation (sliding it in its
+    # mapped planes kept 23 elements of the paper's pose inverted)
+    assert rep.relaxation.options.slide_skin is False
+    assert compute_quality(result.coords, small_leg.model.blocks).n_inverted == 0
 
 
 def test_bone_contact_option_keeps_rest_pose_and_pushes_tissue_out(small_leg, small_setup):
