@@ -811,6 +811,12 @@ class Workspace(QObject):
             # bones reaching into each other crush the tissue between them: say so
             overlaps = bone_overlap(flexion)
             warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
+            in_bones = poser.tissue_in_bones(outcome.coords, flexion)
+            warnings += [
+                f"{b['nodes']} tissue node(s) inside the {name} (deepest {b['deepest']:.2g})"
+                for name, b in in_bones["bones"].items()
+                if b["nodes"]
+            ]
             if not warnings:
                 return outcome
             return replace(outcome, message=f"{outcome.message}; warning: {'; '.join(warnings)}")

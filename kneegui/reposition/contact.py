@@ -298,11 +298,8 @@ class BoneDepthGuard:
         transforms: Mapping[str, RigidTransform],
         start_coords: NDArray[np.float64],
     ) -> None:
-        self._bones = [
-            (surface, transforms[name].inverse())
-            for name, surface in surfaces.items()
-            if name in transforms
-        ]
+        self.segments = [name for name in surfaces if name in transforms]
+        self._bones = [(surfaces[name], transforms[name].inverse()) for name in self.segments]
         self.start = np.array(start_coords, dtype=np.float64, copy=True)
         # each node's smallest signed distance to a bone at the start, measured on first use
         self._start_depth = np.full((len(self.start), len(self._bones)), np.nan)

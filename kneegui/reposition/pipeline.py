@@ -139,6 +139,15 @@ def pose_model(
     # a bone reaching into another deeper than it did at rest: the kinematics do not suit
     # these bones (axes, landmarks or tables), and tissue between them is crushed
     warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
+    t = time.perf_counter()
+    in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
+    timings["tissue_in_bones"] = time.perf_counter() - t
+    for name, found in in_bones["bones"].items():
+        if found["nodes"]:
+            warnings.append(
+                f"{found['nodes']} soft-tissue node(s) deeper than {in_bones['tolerance']:.3g} "
+                f"inside the {name} (deepest {found['deepest']:.3g})"
+            )
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,
@@ -156,6 +165,7 @@ def pose_model(
             "scale_capped_nodes": result.skin.scaled_capped,
             "penetrations_fixed": result.skin.penetrations_fixed,
         },
+        "tissue_in_bones": in_bones,
         "bones": {
             "fe_rotation_deg": result.bone_pose.fe_rotation_deg,
             "tibial_rotation_deg": result.bone_pose.tibial_rotation_deg,

@@ -74,6 +74,11 @@ FLEXION_RANGE = (-10.0, 150.0)
 ProgressCallback = Callable[[float, str], None]
 
 
+#: Depth (in mean condyle radii, about 0.45 mm on the demo) beyond which a soft-tissue node counts
+#: as inside a bone in the pose report: nodes of a sliding interface lie on the surface itself.
+TISSUE_IN_BONE_TOLERANCE = 0.02
+
+
 @dataclass(frozen=True)
 class RepositionOptions:
     """Tunable choices of the repositioner (all have measured defaults).
@@ -342,6 +347,7 @@ class Repositioner:
         # on a 1M-element model it costs more than everything above
         self.relaxation: ElasticRelaxation | None = None
         self._overlap_check: BoneOverlapCheck | None = None
+        self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -632,6 +638,59 @@ class Repositioner:
         if not isinstance(bone, BonePose):
             bone = self.bone_pose(float(bone))
         return BoneDepthGuard(self._bone_surfaces(), bone.transforms, coords)
+
+    def tissue_in_bones(
+        self, coords: NDArray[np.float64], bone: BonePose | float, tolerance: float | None = None
+    ) -> dict[str, Any]:
+        """How much soft tissue of a pose lies inside the bones.
+
+        Every soft-tissue node within ``relax_reach`` condyle radii of the F-E axis (farther
+        away tissue moves with its bone) is measured against each moving segment's posed
+        surface.
+
+        Parameters
+        ----------
+        coords : (N, 3) ndarray
+            The pose.
+        bone : BonePose or float
+            The bones' pose, or the flexion (degrees) to solve it for.
+        tolerance : float, optional
+            Depth (model units) beyond which a node counts as inside; default
+            :data:`TISSUE_IN_BONE_TOLERANCE` condyle radii.
+
+        Returns
+        -------
+        dict
+            ``tolerance``, ``nodes`` (deeper than it, any bone), ``deepest`` (model units) and
+            per segment ``{"nodes", "deepest"}``.
+        """
+        size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        if tolerance is None:
+            tolerance = TISSUE_IN_BONE_TOLERANCE * size
+        if self._near_soft is None:
+            axis = self.axes.fe_axis
+            rel = self.model.coords[self.groups.soft] - axis.point
+            radial = rel - np.outer(rel @ axis.direction, axis.direction)
+            near = np.linalg.norm(radial, axis=1) < self.options.relax_reach * size
+            self._near_soft = self.groups.soft[near]
+        nodes = self._near_soft
+        guard = self.bone_depth_guard(coords, bone)
+        depth = guard.start_depth(nodes) if len(nodes) else np.zeros((0, 0))
+        names = guard.segments
+        per_bone = {}
+        for j, name in enumerate(names):
+            d = -depth[:, j]
+            per_bone[name] = {
+                "nodes": int(np.sum(d > tolerance)),
+                "deepest": float(d.max()) if len(d) and d.max() > 0 else 0.0,
+            }
+        inside = (-depth > tolerance).any(axis=1) if depth.size else np.zeros(0, dtype=bool)
+        return {
+            "tolerance": float(tolerance),
+            "nodes": int(inside.sum()),
+            "deepest": max((b["deepest"] for b in per_bone.values()), default=0.0),
+            "bones": per_bone,
+        }
 
     def bone_overlap(self, bone: BonePose | float) -> list[BoneOverlap]:
         """How deep each rigid segment's surface lies inside another's in a pose (deepest

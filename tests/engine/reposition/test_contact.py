@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from kneegui.geometry.transforms import RigidTransform
+from kneegui.reposition.checks import penetrating, surface_triangles
 from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
 from kneegui.reposition.pipeline import pose_model
 
@@ -90,3 +91,28 @@ def test_smoothing_the_export_pushes_no_tissue_into_a_bone(small_repositioner, a
     before = guard.start_depth(moved)
     after = guard.depths(moved, posed.model.coords[moved])
     assert np.all(after >= np.minimum(before, 0.0) - 1e-9)
+
+
+def test_tissue_in_bones_agrees_with_the_independent_check(
+    small_leg, small_setup, small_repositioner
+):
+    rep, model = small_repositioner, small_leg.model
+    assert rep.tissue_in_bones(model.coords, rep.initial_flexion)["nodes"] == 0
+    mapped = rep.pose(90.0)  # the slider's mapping carries tissue into femur and tibia
+    found = rep.tissue_in_bones(mapped, 90.0)
+    ml = rep.axes.fe_axis.direction
+    for name, roles in (("femur", ("femur",)), ("tibia", ("tibia", "fibula"))):
+        tris = surface_triangles(model, small_setup.parts_of(*roles), shells=False)
+        inside = penetrating(mapped[rep._near_soft], mapped, tris, ml, found["tolerance"])
+        assert found["bones"][name]["nodes"] == int(inside.sum()) > 0, name
+    assert found["nodes"] <= sum(b["nodes"] for b in found["bones"].values())
+    assert found["deepest"] > 10 * found["tolerance"]
+
+
+def test_the_pose_report_counts_tissue_in_bones_and_warns(small_repositioner):
+    posed = pose_model(small_repositioner, 120.0, smooth=False)
+    found = posed.report["tissue_in_bones"]
+    assert set(found) == {"tolerance", "nodes", "deepest", "bones"}
+    assert set(found["bones"]) == {"femur", "tibia", "patella"}
+    warned = [w for w in posed.report["warnings"] if "soft-tissue node" in w]
+    assert len(warned) == sum(1 for b in found["bones"].values() if b["nodes"])

@@ -31,21 +31,21 @@ def known_gap(angle: float, reason: str):
 # the counts below: python scripts/worst_elements.py ANGLE --elements 2000
 CROSSING_GAP = (
     "the mapping creases the posterior skin from 60 deg on and the relaxation slides skin nodes "
-    "along it, so neighbouring contours cross there (small demo, relaxed pose: 9, 24 and 46 skin "
+    "along it, so neighbouring contours cross there (small demo, relaxed pose: 10, 23 and 45 skin "
     "nodes beyond the neighbouring contour's plane at 60, 90 and 120 deg)"
 )
 PENETRATION_GAP = (
     "the relaxation lets tissue next to a ligament or capsule attachment go as deep into a "
     "bone as the attachment itself, and holds tissue out of a bone by a penalty with a bounded "
-    "force (so that no element inverts): 1 node of the small demo stays deeper than 0.5 mm at "
-    "30 deg, 1 at 90 deg (0.56 mm, behind the tibial plateau) and 4 at 120 deg"
+    "force (so that no element inverts): 2 nodes of the small demo stay deeper than 0.5 mm at "
+    "30 deg (in the femur), 2 at 90 deg (femur, fibula) and 4 at 120 deg (tibia)"
 )
 
 
 WORST_JACOBIAN_GAP = (
-    "the small demo's worst element at 90 deg is knee flesh on the posterior tibia (0.16 "
-    "against the initial 0.33), tissue the mapping carries into the tibia and the push out "
-    "compresses; the MCL comes next (0.20)"
+    "the small demo's worst element at 90 deg is knee flesh behind the medial tibial plateau "
+    "(0.18 against the initial 0.33), tissue the mapping carries into the tibia; the MCL comes "
+    "next (0.23)"
 )
 
 
