@@ -250,8 +250,8 @@ class RelaxOptions:
         ``eps`` a restart begins with.
     slide_skin : bool or None
         Skin nodes move only in the tangent plane of the pose being relaxed (the sliding nodes
-        given to :class:`ElasticRelaxation`). ``None`` (no sliding for
-        :class:`ElasticRelaxation` itself): :class:`kneegui.reposition.Repositioner` slides
+        given to :class:`ElasticRelaxation`; ``None`` slides them there too).
+        :class:`kneegui.reposition.Repositioner` resolves ``None`` by method: it slides
         the skin for the ``blend`` method, whose skin is the mapped surface, and frees it for
         ``paper`` and ``hybrid``, whose contour-placed skin can fold and must be free to
         unfold (the default demo at 60 deg with ``paper``: 80 elements left inverted with a
@@ -983,7 +983,7 @@ class ElasticRelaxation:
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Rows of ``sub.free`` that slide, and their unit surface normals at ``x`` (area-weighted
         over the quads around each node)."""
-        if not self.options.slide_skin or len(self.sliding) == 0 or len(self.quads) == 0:
+        if self.options.slide_skin is False or len(self.sliding) == 0 or len(self.quads) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
         free_global = sub.nodes[sub.free]
         rows = np.flatnonzero(np.isin(free_global, self.sliding))
@@ -1032,7 +1032,8 @@ class ElasticRelaxation:
                 return ok
 
         goals = self.goals if self.goals is not None else 0.6
-        sliding = self.sliding[np.isin(self.sliding, free)] if self.options.slide_skin else None
+        slide = self.options.slide_skin is not False
+        sliding = self.sliding[np.isin(self.sliding, free)] if slide else None
         x, report.polish = smooth_mesh(
             x,
             self.blocks,
