@@ -819,7 +819,8 @@ class Workspace(QObject):
             ]
             if not warnings:
                 return outcome
-            return replace(outcome, message=f"{outcome.message}; warning: {'; '.join(warnings)}")
+            # warnings first: the status bar cuts a long line at the window's edge
+            return replace(outcome, message=f"warning: {'; '.join(warnings)}; {outcome.message}")
 
         def done(result):
             self.set_coords(result.coords, smoothed=True)

@@ -343,7 +343,8 @@ def test_relax_and_smooth_warns_about_bones_reaching_into_each_other(demo_window
     demo_window.guard(ws.smooth)
     wait_idle(qtbot, ws, timeout=150)
     assert demo_window.last_error is None, demo_window.last_error
-    assert any("warning: " in m and "the patella reaches" in m for m in messages), messages
+    # warnings lead the line, which the status bar cuts at the window's edge
+    assert any(m.startswith("warning: ") and "the patella reaches" in m for m in messages), messages
     set_slider(demo_window, qtbot, 60.0)
 
 
