@@ -791,19 +791,11 @@ class Workspace(QObject):
             return poser.relax(x, flexion, progress, cancelled)
 
         guard_for = getattr(poser, "bone_depth_guard", None)  # a Repositioner's
-
-        def bone_guard(x):
-            return guard_for(x, flexion)
+        bone_guard = None if guard_for is None else (lambda x: guard_for(x, flexion))
 
         def work(progress, cancelled):
             outcome = smooth_current(
-                model,
-                coords,
-                setup,
-                progress,
-                cancelled,
-                relax_pose if relax else None,
-                bone_guard if guard_for is not None else None,
+                model, coords, setup, progress, cancelled, relax_pose if relax else None, bone_guard
             )
             bone_overlap = getattr(poser, "bone_overlap", None)  # a Repositioner's
             if bone_overlap is None:
@@ -811,12 +803,9 @@ class Workspace(QObject):
             # bones reaching into each other crush the tissue between them: say so
             overlaps = bone_overlap(flexion)
             warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
-            in_bones = poser.tissue_in_bones(outcome.coords, flexion)
-            warnings += [
-                f"{b['nodes']} tissue node(s) inside the {name} (deepest {b['deepest']:.2g})"
-                for name, b in in_bones["bones"].items()
-                if b["nodes"]
-            ]
+            from kneegui.reposition.repositioner import tissue_in_bones_warnings
+
+            warnings += tissue_in_bones_warnings(poser.tissue_in_bones(outcome.coords, flexion))
             if not warnings:
                 return outcome
             # warnings first: the status bar cuts a long line at the window's edge

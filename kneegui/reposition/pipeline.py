@@ -13,7 +13,7 @@ from kneegui.model import SOLID_TYPES, Model
 from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
-from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner
+from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -142,12 +142,7 @@ def pose_model(
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
-    for name, found in in_bones["bones"].items():
-        if found["nodes"]:
-            warnings.append(
-                f"{found['nodes']} soft-tissue node(s) deeper than {in_bones['tolerance']:.3g} "
-                f"inside the {name} (deepest {found['deepest']:.3g})"
-            )
+    warnings += tissue_in_bones_warnings(in_bones)
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,

@@ -21,7 +21,7 @@ tissue the mapping degraded, untangling inverted elements and keeping tissue out
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -72,6 +72,17 @@ SEGMENTS = ("femur", "tibia", "patella", "fixed")
 FLEXION_RANGE = (-10.0, 150.0)
 
 ProgressCallback = Callable[[float, str], None]
+
+
+def tissue_in_bones_warnings(found: Mapping[str, Any]) -> list[str]:
+    """One warning line per bone with tissue inside it, from
+    :meth:`Repositioner.tissue_in_bones` (the pose report's and the GUI's wording)."""
+    return [
+        f"{b['nodes']} soft-tissue node(s) deeper than {found['tolerance']:.3g} inside the "
+        f"{name} (deepest {b['deepest']:.3g})"
+        for name, b in found["bones"].items()
+        if b["nodes"]
+    ]
 
 
 #: Depth (in mean condyle radii, about 0.45 mm on the demo) beyond which a soft-tissue node counts
@@ -444,11 +455,8 @@ class Repositioner:
         shells = {e: solids.pop(e) for e in ("quad4", "tri3") if e in solids}
         tets = corner_tetrahedra(model.blocks, solids)
         face_tets, virtual = shell_face_tetrahedra(model.blocks, shells, solids, model.n_nodes)
-        axis = self.axes.fe_axis
-        rel = model.coords[g.soft] - axis.point
-        radial = rel - np.outer(rel @ axis.direction, axis.direction)
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
-        free = g.soft[np.linalg.norm(radial, axis=1) < self.options.relax_reach * size]
+        free = self._soft_near_joint()
         options = self.options.relaxation
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
@@ -466,6 +474,18 @@ class Repositioner:
             blocks=model.blocks,
             goals=smoothing_goals(compute_quality(model.coords, model.blocks)),
         )
+
+    def _soft_near_joint(self) -> NDArray[np.int64]:
+        """Soft-tissue nodes within ``relax_reach`` mean condyle radii of the F-E axis (at rest):
+        those the relaxation may move and the in-bone check measures. Computed once."""
+        if self._near_soft is None:
+            axis = self.axes.fe_axis
+            rel = self.model.coords[self.groups.soft] - axis.point
+            radial = rel - np.outer(rel @ axis.direction, axis.direction)
+            size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+            near = np.linalg.norm(radial, axis=1) < self.options.relax_reach * size
+            self._near_soft = self.groups.soft[near]
+        return self._near_soft
 
     def _bone_contact(self, reach: float) -> BoneContact:
         model, setup, g = self.model, self.setup, self.groups
@@ -667,27 +687,19 @@ class Repositioner:
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         if tolerance is None:
             tolerance = TISSUE_IN_BONE_TOLERANCE * size
-        if self._near_soft is None:
-            axis = self.axes.fe_axis
-            rel = self.model.coords[self.groups.soft] - axis.point
-            radial = rel - np.outer(rel @ axis.direction, axis.direction)
-            near = np.linalg.norm(radial, axis=1) < self.options.relax_reach * size
-            self._near_soft = self.groups.soft[near]
-        nodes = self._near_soft
         guard = self.bone_depth_guard(coords, bone)
-        depth = guard.start_depth(nodes) if len(nodes) else np.zeros((0, 0))
-        names = guard.segments
-        per_bone = {}
-        for j, name in enumerate(names):
-            d = -depth[:, j]
-            per_bone[name] = {
-                "nodes": int(np.sum(d > tolerance)),
-                "deepest": float(d.max()) if len(d) and d.max() > 0 else 0.0,
+        nodes = self._soft_near_joint()
+        depth = -guard.start_depth(nodes)  # (nodes, segments), + inside
+        per_bone = {
+            name: {
+                "nodes": int(np.sum(depth[:, j] > tolerance)),
+                "deepest": float(depth[:, j].max(initial=0.0)) + 0.0,  # + 0.0: no -0.0
             }
-        inside = (-depth > tolerance).any(axis=1) if depth.size else np.zeros(0, dtype=bool)
+            for j, name in enumerate(guard.segments)
+        }
         return {
             "tolerance": float(tolerance),
-            "nodes": int(inside.sum()),
+            "nodes": int(np.sum((depth > tolerance).any(axis=1))),
             "deepest": max((b["deepest"] for b in per_bone.values()), default=0.0),
             "bones": per_bone,
         }
