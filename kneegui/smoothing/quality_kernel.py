@@ -1,0 +1,380 @@
+"""Compiled penalties of the quality optimiser (fused loops over elements and faces).
+
+:func:`kneegui.smoothing.quality_optimiser.corner_ratio_penalty_numpy` is the reference; this
+is the same arithmetic, element by element, compiled with Numba (tests check the two agree).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def corner_ratio_penalty(
+    x, corners, elem_ptr, log_aim, quads, quad_triples, quad_log_aim, grad
+):  # pragma: no cover - compiled
+    """Sum over elements of ``max(0, log aim - log d_i + log d_j)^2`` over corner pairs.
+
+    ``x`` (S, 3) coordinates; ``corners`` (C, 4) local node indices (corner node, then the
+    three edge ends) of the solids, grouped by element through ``elem_ptr`` (E + 1,);
+    ``log_aim`` (E,); ``quads`` (Q, 4) shell nodes whose corner determinants use the quad's own
+    diagonal normal, ``quad_triples`` (4, 3) their corners, ``quad_log_aim`` (Q,). Fills
+    ``grad`` (S, 3). Returns ``inf`` (and a meaningless gradient) when a corner determinant is
+    not positive: the solver treats that as a rejected step.
+    """
+    grad[:, :] = 0.0
+    total = 0.0
+    dets = np.empty(8)
+    logs = np.empty(8)
+    g_log = np.empty(8)
+    for e in range(elem_ptr.shape[0] - 1):
+        p0 = elem_ptr[e]
+        k = elem_ptr[e + 1] - p0
+        for i in range(k):
+            c = corners[p0 + i]
+            ax = x[c[1], 0] - x[c[0], 0]
+            ay = x[c[1], 1] - x[c[0], 1]
+            az = x[c[1], 2] - x[c[0], 2]
+            bx = x[c[2], 0] - x[c[0], 0]
+            by = x[c[2], 1] - x[c[0], 1]
+            bz = x[c[2], 2] - x[c[0], 2]
+            ex = x[c[3], 0] - x[c[0], 0]
+            ey = x[c[3], 1] - x[c[0], 1]
+            ez = x[c[3], 2] - x[c[0], 2]
+            d = ex * (ay * bz - az * by) + ey * (az * bx - ax * bz) + ez * (ax * by - ay * bx)
+            if not d > 0.0:
+                return math.inf
+            dets[i] = d
+            logs[i] = math.log(d)
+            g_log[i] = 0.0
+        aim = log_aim[e]
+        for i in range(k):
+            for j in range(k):
+                u = aim - logs[i] + logs[j]
+                if i != j and u > 0.0:
+                    total += u * u
+                    g_log[i] -= 2.0 * u
+                    g_log[j] += 2.0 * u
+        for i in range(k):
+            if g_log[i] == 0.0:
+                continue
+            s = g_log[i] / dets[i]
+            c = corners[p0 + i]
+            ax = x[c[1], 0] - x[c[0], 0]
+            ay = x[c[1], 1] - x[c[0], 1]
+            az = x[c[1], 2] - x[c[0], 2]
+            bx = x[c[2], 0] - x[c[0], 0]
+            by = x[c[2], 1] - x[c[0], 1]
+            bz = x[c[2], 2] - x[c[0], 2]
+            ex = x[c[3], 0] - x[c[0], 0]
+            ey = x[c[3], 1] - x[c[0], 1]
+            ez = x[c[3], 2] - x[c[0], 2]
+            # d = (a x b) . e: dd/da = b x e, dd/db = e x a, dd/de = a x b
+            gax = s * (by * ez - bz * ey)
+            gay = s * (bz * ex - bx * ez)
+            gaz = s * (bx * ey - by * ex)
+            gbx = s * (ey * az - ez * ay)
+            gby = s * (ez * ax - ex * az)
+            gbz = s * (ex * ay - ey * ax)
+            gex = s * (ay * bz - az * by)
+            gey = s * (az * bx - ax * bz)
+            gez = s * (ax * by - ay * bx)
+            grad[c[1], 0] += gax
+            grad[c[1], 1] += gay
+            grad[c[1], 2] += gaz
+            grad[c[2], 0] += gbx
+            grad[c[2], 1] += gby
+            grad[c[2], 2] += gbz
+            grad[c[3], 0] += gex
+            grad[c[3], 1] += gey
+            grad[c[3], 2] += gez
+            grad[c[0], 0] -= gax + gbx + gex
+            grad[c[0], 1] -= gay + gby + gey
+            grad[c[0], 2] -= gaz + gbz + gez
+    for q in range(quads.shape[0]):
+        n0 = quads[q, 0]
+        n1 = quads[q, 1]
+        n2 = quads[q, 2]
+        n3 = quads[q, 3]
+        px = x[n2, 0] - x[n0, 0]
+        py = x[n2, 1] - x[n0, 1]
+        pz = x[n2, 2] - x[n0, 2]
+        qx = x[n3, 0] - x[n1, 0]
+        qy = x[n3, 1] - x[n1, 1]
+        qz = x[n3, 2] - x[n1, 2]
+        nx = py * qz - pz * qy
+        ny = pz * qx - px * qz
+        nz = px * qy - py * qx
+        for i in range(4):
+            c = quads[q, quad_triples[i, 0]]
+            a = quads[q, quad_triples[i, 1]]
+            b = quads[q, quad_triples[i, 2]]
+            ux = x[a, 0] - x[c, 0]
+            uy = x[a, 1] - x[c, 1]
+            uz = x[a, 2] - x[c, 2]
+            vx = x[b, 0] - x[c, 0]
+            vy = x[b, 1] - x[c, 1]
+            vz = x[b, 2] - x[c, 2]
+            d = nx * (uy * vz - uz * vy) + ny * (uz * vx - ux * vz) + nz * (ux * vy - uy * vx)
+            if not d > 0.0:
+                return math.inf
+            dets[i] = d
+            logs[i] = math.log(d)
+            g_log[i] = 0.0
+        aim = quad_log_aim[q]
+        for i in range(4):
+            for j in range(4):
+                u = aim - logs[i] + logs[j]
+                if i != j and u > 0.0:
+                    total += u * u
+                    g_log[i] -= 2.0 * u
+                    g_log[j] += 2.0 * u
+        for i in range(4):
+            if g_log[i] == 0.0:
+                continue
+            s = g_log[i] / dets[i]
+            c = quads[q, quad_triples[i, 0]]
+            a = quads[q, quad_triples[i, 1]]
+            b = quads[q, quad_triples[i, 2]]
+            ux = x[a, 0] - x[c, 0]
+            uy = x[a, 1] - x[c, 1]
+            uz = x[a, 2] - x[c, 2]
+            vx = x[b, 0] - x[c, 0]
+            vy = x[b, 1] - x[c, 1]
+            vz = x[b, 2] - x[c, 2]
+            # d = (u x v) . n with n = p x q: dd/du = v x n, dd/dv = n x u, and with
+            # w = u x v, dd/dp = q x w, dd/dq = w x p
+            gux = s * (vy * nz - vz * ny)
+            guy = s * (vz * nx - vx * nz)
+            guz = s * (vx * ny - vy * nx)
+            gvx = s * (ny * uz - nz * uy)
+            gvy = s * (nz * ux - nx * uz)
+            gvz = s * (nx * uy - ny * ux)
+            wx = uy * vz - uz * vy
+            wy = uz * vx - ux * vz
+            wz = ux * vy - uy * vx
+            gpx = s * (qy * wz - qz * wy)
+            gpy = s * (qz * wx - qx * wz)
+            gpz = s * (qx * wy - qy * wx)
+            gqx = s * (wy * pz - wz * py)
+            gqy = s * (wz * px - wx * pz)
+            gqz = s * (wx * py - wy * px)
+            grad[a, 0] += gux
+            grad[a, 1] += guy
+            grad[a, 2] += guz
+            grad[b, 0] += gvx
+            grad[b, 1] += gvy
+            grad[b, 2] += gvz
+            grad[c, 0] -= gux + gvx
+            grad[c, 1] -= guy + gvy
+            grad[c, 2] -= guz + gvz
+            grad[n2, 0] += gpx
+            grad[n2, 1] += gpy
+            grad[n2, 2] += gpz
+            grad[n0, 0] -= gpx
+            grad[n0, 1] -= gpy
+            grad[n0, 2] -= gpz
+            grad[n3, 0] += gqx
+            grad[n3, 1] += gqy
+            grad[n3, 2] += gqz
+            grad[n1, 0] -= gqx
+            grad[n1, 1] -= gqy
+            grad[n1, 2] -= gqz
+    return total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cross_grad(x, grad, base, iu, iv, gx, gy, gz, s):  # pragma: no cover - compiled
+    """Add ``s * d(G . n)/dx`` for ``n = (x[iu] - x[base]) x (x[iv] - x[base])``."""
+    ux = x[iu, 0] - x[base, 0]
+    uy = x[iu, 1] - x[base, 1]
+    uz = x[iu, 2] - x[base, 2]
+    vx = x[iv, 0] - x[base, 0]
+    vy = x[iv, 1] - x[base, 1]
+    vz = x[iv, 2] - x[base, 2]
+    # d(G . (u x v))/du = v x G, /dv = G x u
+    aux = s * (vy * gz - vz * gy)
+    auy = s * (vz * gx - vx * gz)
+    auz = s * (vx * gy - vy * gx)
+    avx = s * (gy * uz - gz * uy)
+    avy = s * (gz * ux - gx * uz)
+    avz = s * (gx * uy - gy * ux)
+    grad[iu, 0] += aux
+    grad[iu, 1] += auy
+    grad[iu, 2] += auz
+    grad[iv, 0] += avx
+    grad[iv, 1] += avy
+    grad[iv, 2] += avz
+    grad[base, 0] -= aux + avx
+    grad[base, 1] -= auy + avy
+    grad[base, 2] -= auz + avz
+
+
+@njit(cache=True, nogil=True)
+def _normal(x, base, iu, iv):  # pragma: no cover - compiled
+    ux = x[iu, 0] - x[base, 0]
+    uy = x[iu, 1] - x[base, 1]
+    uz = x[iu, 2] - x[base, 2]
+    vx = x[iv, 0] - x[base, 0]
+    vy = x[iv, 1] - x[base, 1]
+    vz = x[iv, 2] - x[base, 2]
+    return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+
+
+@njit(cache=True, nogil=True)
+def _angle_gradients(ax, ay, az, bx, by, bz):  # pragma: no cover - compiled
+    """Angle theta in [0, pi] between vectors a and b, and d theta / d a, d theta / d b.
+
+    ``theta = atan2(|a^ x b^|, a^ . b^)``; its gradient ``-(b^ - cos a^) / (sin |a|)`` stays
+    finite as the vectors turn parallel or opposite (where the cosine's own gradient
+    vanishes: a face folded flat would otherwise feel no pull). Returns zeros for a zero
+    vector or an angle of exactly 0 or pi.
+    """
+    la = math.sqrt(ax * ax + ay * ay + az * az)
+    lb = math.sqrt(bx * bx + by * by + bz * bz)
+    if la == 0.0 or lb == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    c = (ax * bx + ay * by + az * bz) / (la * lb)
+    cx = (ay * bz - az * by) / (la * lb)
+    cy = (az * bx - ax * bz) / (la * lb)
+    cz = (ax * by - ay * bx) / (la * lb)
+    sn = math.sqrt(cx * cx + cy * cy + cz * cz)
+    theta = math.atan2(sn, c)
+    if sn < 1e-12:
+        return theta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    ka = -1.0 / (sn * la)
+    kb = -1.0 / (sn * lb)
+    return (
+        theta,
+        ka * (bx / lb - c * ax / la),
+        ka * (by / lb - c * ay / la),
+        ka * (bz / lb - c * az / la),
+        kb * (ax / la - c * bx / lb),
+        kb * (ay / la - c * by / lb),
+        kb * (az / la - c * bz / lb),
+    )
+
+
+@njit(cache=True, nogil=True)
+def _fold_penalty(x, grad, t1, t2, aim, weight):  # pragma: no cover - compiled
+    """``weight * max(0, theta - aim)^2``, theta the angle (radians) between the normals of
+    triangles t1 and t2 (each ``(base, u, v)``); adds its gradient, returns the penalty."""
+    ax, ay, az = _normal(x, t1[0], t1[1], t1[2])
+    bx, by, bz = _normal(x, t2[0], t2[1], t2[2])
+    theta, gax, gay, gaz, gbx, gby, gbz = _angle_gradients(ax, ay, az, bx, by, bz)
+    excess = theta - aim
+    if excess <= 0.0:
+        return 0.0
+    s = 2.0 * weight * excess
+    _cross_grad(x, grad, t1[0], t1[1], t1[2], gax, gay, gaz, s)
+    _cross_grad(x, grad, t2[0], t2[1], t2[2], gbx, gby, gbz, s)
+    return weight * excess * excess
+
+
+@njit(cache=True, nogil=True)
+def face_shape_penalty(  # pragma: no cover - compiled
+    x, faces, log_aspect_aim, warp_aim, skew_aim, weights, grad
+):
+    """Penalties on quad faces (F, 4) and triangle faces (F, 4 with -1 last) whose aspect
+    ratio, warpage or skew exceed their aims (QUALITY.md definitions); adds to ``grad``.
+
+    ``weights`` = (aspect, warpage, skew); angles in radians. Aspect:
+    ``max(0, log(l_i / l_j) - log aim)^2`` over the face's edge pairs; warpage:
+    ``max(0, theta - aim)^2`` for the angle between the triangle normals of both diagonal
+    splits; skew: ``max(0, |theta - pi/2| - aim)^2`` for the angle between the mid-side lines.
+    """
+    total = 0.0
+    tri = np.empty(3, dtype=np.int64)
+    tri2 = np.empty(3, dtype=np.int64)
+    logl = np.empty(4)
+    g_log = np.empty(4)
+    w_aspect, w_warp, w_skew = weights[0], weights[1], weights[2]
+    for f in range(faces.shape[0]):
+        k = 4 if faces[f, 3] >= 0 else 3
+        # aspect: squared edge lengths
+        for i in range(k):
+            a = faces[f, i]
+            b = faces[f, (i + 1) % k]
+            dx = x[b, 0] - x[a, 0]
+            dy = x[b, 1] - x[a, 1]
+            dz = x[b, 2] - x[a, 2]
+            sq = dx * dx + dy * dy + dz * dz
+            if not sq > 0.0:
+                return math.inf
+            logl[i] = 0.5 * math.log(sq)
+            g_log[i] = 0.0
+        aim = log_aspect_aim[f]
+        for i in range(k):
+            for j in range(k):
+                u = logl[i] - logl[j] - aim
+                if i != j and u > 0.0:
+                    total += w_aspect * u * u
+                    g_log[i] += 2.0 * w_aspect * u
+                    g_log[j] -= 2.0 * w_aspect * u
+        for i in range(k):
+            if g_log[i] == 0.0:
+                continue
+            a = faces[f, i]
+            b = faces[f, (i + 1) % k]
+            dx = x[b, 0] - x[a, 0]
+            dy = x[b, 1] - x[a, 1]
+            dz = x[b, 2] - x[a, 2]
+            s = g_log[i] / (dx * dx + dy * dy + dz * dz)  # d(0.5 log sq) = d sq / (2 sq)
+            grad[b, 0] += s * dx
+            grad[b, 1] += s * dy
+            grad[b, 2] += s * dz
+            grad[a, 0] -= s * dx
+            grad[a, 1] -= s * dy
+            grad[a, 2] -= s * dz
+        if k == 3:
+            continue
+        p0 = faces[f, 0]
+        p1 = faces[f, 1]
+        p2 = faces[f, 2]
+        p3 = faces[f, 3]
+        if w_warp > 0.0:
+            # split along 0-2: (0, 1, 2) and (0, 2, 3); along 1-3: (0, 1, 3) and (1, 2, 3)
+            tri[0], tri[1], tri[2] = p0, p1, p2
+            tri2[0], tri2[1], tri2[2] = p0, p2, p3
+            total += _fold_penalty(x, grad, tri, tri2, warp_aim[f], w_warp)
+            tri[0], tri[1], tri[2] = p0, p1, p3
+            tri2[0], tri2[1], tri2[2] = p1, p2, p3
+            total += _fold_penalty(x, grad, tri, tri2, warp_aim[f], w_warp)
+        if w_skew > 0.0:
+            # X1 = (p1 - p0) - (p3 - p2), X2 = (p2 - p1) - (p0 - p3)
+            ax = x[p1, 0] - x[p0, 0] - x[p3, 0] + x[p2, 0]
+            ay = x[p1, 1] - x[p0, 1] - x[p3, 1] + x[p2, 1]
+            az = x[p1, 2] - x[p0, 2] - x[p3, 2] + x[p2, 2]
+            bx = x[p2, 0] - x[p1, 0] - x[p0, 0] + x[p3, 0]
+            by = x[p2, 1] - x[p1, 1] - x[p0, 1] + x[p3, 1]
+            bz = x[p2, 2] - x[p1, 2] - x[p0, 2] + x[p3, 2]
+            theta, gax, gay, gaz, gbx, gby, gbz = _angle_gradients(ax, ay, az, bx, by, bz)
+            half = 0.5 * math.pi
+            excess = abs(theta - half) - skew_aim[f]
+            if excess <= 0.0:
+                continue
+            total += w_skew * excess * excess
+            s = 2.0 * w_skew * excess * (1.0 if theta > half else -1.0)
+            gax *= s
+            gay *= s
+            gaz *= s
+            gbx *= s
+            gby *= s
+            gbz *= s
+            # dX1: +p1 +p2 -p0 -p3; dX2: +p2 +p3 -p1 -p0
+            grad[p1, 0] += gax - gbx
+            grad[p1, 1] += gay - gby
+            grad[p1, 2] += gaz - gbz
+            grad[p2, 0] += gax + gbx
+            grad[p2, 1] += gay + gby
+            grad[p2, 2] += gaz + gbz
+            grad[p0, 0] -= gax + gbx
+            grad[p0, 1] -= gay + gby
+            grad[p0, 2] -= gaz + gbz
+            grad[p3, 0] += gbx - gax
+            grad[p3, 1] += gby - gay
+            grad[p3, 2] += gbz - gaz
+    return total

@@ -1,0 +1,628 @@
+"""Bring every element around a set of free nodes within its quality aims, all nodes together.
+
+The four metrics of QUALITY.md become soft constraints, each element with its own aims
+(:func:`quality_aims`: its initial value, or the warn threshold where that is less demanding):
+
+- corner Jacobian ``J = min_i d_i / max_j d_j`` over the corner determinants: ``J >= t`` exactly
+  when every pair of corners has ``log d_i - log d_j >= log t``, so the penalty is
+  ``sum_(i != j) max(0, log t - log d_i + log d_j)^2``. Like J itself it is invariant to any
+  affine map of the element: a squashed element that keeps its proportions costs nothing;
+- aspect ratio of each face: ``max(0, log(l_i / l_j) - log aim)^2`` over its edge pairs;
+- warpage of each quad face: ``max(0, theta - aim)^2``, theta the angle between the triangle
+  normals of either diagonal split (an angle, not its cosine: the cosine's gradient vanishes on
+  a face folded flat);
+- skew of each quad face: ``max(0, |theta - 90 deg| - aim)^2``, theta between the mid-side
+  lines.
+
+Every term is zero inside the aims and grows smoothly with the shortfall. The corner
+determinants must stay positive, so the optimiser runs on an untangled mesh and the line search
+refuses a step onto a non-positive corner. L-BFGS minimises the sum over all free nodes
+together, plus a weak anchor to the start (``anchor``, per squared edge length, so nodes with
+nothing to gain stay put) and optional half-space constraints ``n . x >= offset`` as a quadratic
+penalty (the repositioner's bone contact: tissue slides along a bone without entering it),
+re-evaluated between rounds.
+
+Why beside the node-by-node smoother (:mod:`kneegui.smoothing.smoother`): that one moves one
+node at a time and keeps a move only if no element around it gets worse, so it cannot move a
+column of nodes together, which is what flesh pressed between two bones needs. Why all four
+metrics: the Jacobian alone can be raised by folding faces (measured on the default demo at 90
+degrees: worst warpage 145 -> 161 degrees, aspect 9.6 -> 32; docs/repositioning.md).
+
+Element count, node ids and connectivity never change; only the free nodes move.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.errors import Cancelled
+from kneegui.model import CORNER_TRIPLES, SOLID_FACES, ElementBlock
+from kneegui.optimize import minimize_lbfgs
+from kneegui.quality.metrics import QualityResult, compute_quality
+from kneegui.quality.thresholds import Thresholds, load_thresholds
+from kneegui.smoothing.quality_kernel import corner_ratio_penalty, face_shape_penalty
+
+ProgressCallback = Callable[[float, str], None]
+#: ``constraints(coords) -> (nodes, normals, offsets)``: node ``nodes[k]`` should satisfy
+#: ``normals[k] . x >= offsets[k]`` (global node indices, unit normals).
+ConstraintCallback = Callable[
+    [NDArray[np.float64]], tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]
+]
+
+#: Solid types with corner determinants (a tet has one corner: only its sign counts).
+SOLID_CORNER_TYPES = ("hex8", "wedge6", "pyramid5", "tet4")
+OPTIMISED_TYPES = (*SOLID_CORNER_TYPES, "quad4")
+#: Corner nodes of each type (the connectivity columns read).
+CORNER_NODES = {"hex8": 8, "wedge6": 6, "pyramid5": 5, "tet4": 4, "quad4": 4}
+QUAD_TRIPLES = np.array([t[:3] for t in CORNER_TRIPLES["quad4"]], dtype=np.int64)
+#: Faces of each type as 4 local nodes, triangles padded with -1 (a shell is its own face).
+_FACES = {
+    etype: np.array([(*f, -1) if len(f) == 3 else f for f in faces], dtype=np.int64)
+    for etype, faces in {**SOLID_FACES, "quad4": ((0, 1, 2, 3),)}.items()
+    if etype in OPTIMISED_TYPES
+}
+
+
+@dataclass(frozen=True)
+class QualityAims:
+    """Per element of each block (arrays aligned with the block's rows): the corner Jacobian to
+    reach, and the aspect ratio, warpage and skew (degrees) not to exceed."""
+
+    jacobian: Mapping[str, NDArray[np.float64]]
+    aspect: Mapping[str, NDArray[np.float64]]
+    warpage: Mapping[str, NDArray[np.float64]]
+    skew: Mapping[str, NDArray[np.float64]]
+
+
+def quality_aims(
+    initial: QualityResult,
+    blocks: Mapping[str, ElementBlock],
+    thresholds: Thresholds | None = None,
+    jacobian_cap: float | None = None,
+) -> QualityAims:
+    """Aims that keep every element at least as good as in the initial model, or within the
+    warn threshold where that asks less.
+
+    Parameters
+    ----------
+    initial : QualityResult
+        Quality of the initial model (every row of each block).
+    blocks : mapping of str to ElementBlock
+        The model's blocks (for the row counts).
+    thresholds : Thresholds, optional
+        Default: ``resources/quality_thresholds.csv``; its default (``*``) warn levels are used.
+    jacobian_cap : float, optional
+        Highest corner Jacobian asked of any element (default: the warn level, 0.6).
+
+    Returns
+    -------
+    QualityAims
+        Jacobian ``min(initial, cap)``; aspect, warpage and skew ``max(initial, warn)``.
+    """
+    levels = (thresholds or load_thresholds()).for_role(None)
+    cap = levels["jacobian"].warn if jacobian_cap is None else float(jacobian_cap)
+    out: dict[str, dict[str, NDArray[np.float64]]] = {m: {} for m in QualityAims.__annotations__}
+    for etype in OPTIMISED_TYPES:
+        if etype not in initial or etype not in blocks:
+            continue
+        q = initial[etype]
+        n = len(blocks[etype])
+        for metric, source, combine, level in (
+            ("jacobian", q.jacobian_corner, np.minimum, cap),
+            ("aspect", q.aspect, np.maximum, levels["aspect"].warn),
+            ("warpage", q.warpage, np.maximum, levels["warpage"].warn),
+            ("skew", q.skew, np.maximum, levels["skew"].warn),
+        ):
+            values = np.full(n, level, dtype=np.float64)
+            values[q.rows] = combine(np.nan_to_num(source, nan=level, posinf=1e6), level)
+            out[metric][etype] = values
+    return QualityAims(**out)
+
+
+def shortfall_region(
+    coords: NDArray[np.float64],
+    blocks: Mapping[str, ElementBlock],
+    aims: QualityAims,
+    candidates: NDArray[np.int64],
+    rings: int = 2,
+) -> NDArray[np.int64]:
+    """Candidate nodes within ``rings`` elements of an element that misses one of its aims.
+
+    Parameters
+    ----------
+    coords : (N, 3) ndarray
+    blocks : mapping of str to ElementBlock
+    aims : QualityAims
+    candidates : (K,) ndarray of int
+        Nodes that may move; only elements touching them are measured.
+    rings : int
+        Element layers the region grows by around the elements that miss an aim.
+
+    Returns
+    -------
+    (M,) ndarray of int
+        Sorted node indices, a subset of ``candidates``.
+    """
+    n = len(coords)
+    allowed = np.zeros(n, dtype=bool)
+    allowed[candidates] = True
+    region = np.zeros(n, dtype=bool)
+    conns = {}
+    for etype in OPTIMISED_TYPES:
+        block = blocks.get(etype)
+        if block is None or len(block) == 0:
+            continue
+        conn = block.conn[:, : CORNER_NODES[etype]]
+        rows = np.flatnonzero(allowed[conn].any(axis=1))
+        if len(rows) == 0:
+            continue
+        conns[etype] = conn[rows]
+        q = compute_quality(coords, {etype: block}, rows={etype: rows})[etype]
+        miss = q.jacobian_corner < aims.jacobian.get(etype, np.zeros(len(block)))[rows]
+        for metric in ("aspect", "warpage", "skew"):
+            limit = getattr(aims, metric).get(etype)
+            if limit is not None:
+                miss |= q.metric(metric) > limit[rows]
+        region[conn[rows[miss]]] = True
+    for _ in range(rings):
+        grown = region.copy()
+        for conn in conns.values():
+            grown[conn[region[conn].any(axis=1)]] = True
+        region = grown
+    return np.flatnonzero(region & allowed)
+
+
+@dataclass(frozen=True)
+class QualityOptions:
+    """Parameters of :func:`optimise_quality`.
+
+    Attributes
+    ----------
+    margin : float
+        Each element aims this much above its Jacobian goal (the penalty is soft, so an element
+        settles a little below its aim where something pulls against it).
+    weights : (float, float, float)
+        Weights of the aspect, warpage and skew penalties against the Jacobian's.
+    anchor : float
+        Weight of ``|x - x_start|^2 / h^2`` per free node (``h`` its mean edge length at the
+        start).
+    rounds : int
+        Rounds of (update the constraints, then L-BFGS).
+    iterations_per_round : int
+        L-BFGS iterations per round.
+    constraint_stiffness : float
+        Penalty per squared model unit of a violated constraint.
+    constraint_tolerance : float
+        The rounds go on (up to ``rounds``) while a node is farther than this (model units) on
+        the wrong side of its constraint, re-evaluated at the end of each round.
+    tolerance : float
+        Stop when a round lowers the objective by less than this fraction.
+    """
+
+    margin: float = 0.03
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    anchor: float = 1e-4
+    rounds: int = 6
+    iterations_per_round: int = 400
+    constraint_stiffness: float = 10.0
+    constraint_tolerance: float = 0.05
+    tolerance: float = 0.02
+
+
+@dataclass(frozen=True)
+class QualityOptimisationReport:
+    """What :func:`optimise_quality` did.
+
+    Attributes
+    ----------
+    free_nodes, elements : int
+        Nodes moved and elements measured (those with a free node).
+    below_aim_before, below_aim_after : int
+        Elements with a corner Jacobian below their aim (without the margin).
+    worst_before, worst_after : float
+        Worst corner Jacobian of those elements.
+    rounds, iterations, evaluations : int
+    max_displacement : float
+        Largest node displacement (model units).
+    seconds : float
+    """
+
+    free_nodes: int = 0
+    elements: int = 0
+    below_aim_before: int = 0
+    below_aim_after: int = 0
+    worst_before: float = float("nan")
+    worst_after: float = float("nan")
+    rounds: int = 0
+    iterations: int = 0
+    evaluations: int = 0
+    max_displacement: float = 0.0
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The elements around the free nodes, in local node numbering."""
+
+    nodes: NDArray[np.int64]  # global ids of the local nodes
+    free: NDArray[np.int64]  # local rows of the free nodes
+    corners: NDArray[np.int64]  # (C, 4) solid corners, grouped by element
+    elem_ptr: NDArray[np.int64]  # (E + 1,)
+    log_aim: NDArray[np.float64]  # (E,)
+    jacobian_aim: NDArray[np.float64]  # (E + Q,) solids then quads, without the margin
+    quads: NDArray[np.int64]  # (Q, 4)
+    quad_log_aim: NDArray[np.float64]
+    faces: NDArray[np.int64]  # (F, 4), -1 pads triangles
+    log_aspect_aim: NDArray[np.float64]
+    warp_aim: NDArray[np.float64]
+    skew_aim: NDArray[np.float64]
+    weights: NDArray[np.float64]
+
+
+def _build_problem(
+    blocks: Mapping[str, ElementBlock],
+    n_nodes: int,
+    free: NDArray[np.int64],
+    aims: QualityAims,
+    options: QualityOptions,
+) -> _Problem:
+    is_free = np.zeros(n_nodes, dtype=bool)
+    is_free[free] = True
+    corners, counts, jac_solid, quads, jac_quad = [], [], [], [], []
+    faces, f_aspect, f_warp, f_skew = [], [], [], []
+    for etype in OPTIMISED_TYPES:
+        block = blocks.get(etype)
+        if block is None or len(block) == 0:
+            continue
+        conn = block.conn[:, : CORNER_NODES[etype]]
+        rows = np.flatnonzero(is_free[conn].any(axis=1))
+        if len(rows) == 0:
+            continue
+
+        def aim(metric: str, default: float, etype: str = etype, rows=rows) -> NDArray:
+            values = getattr(aims, metric).get(etype)
+            return np.full(len(rows), default) if values is None else np.asarray(values)[rows]
+
+        jac = aim("jacobian", 0.0)  # a type without aims only has to stay positive
+        if etype == "quad4":
+            quads.append(conn[rows])
+            jac_quad.append(jac)
+        else:
+            triples = np.array(CORNER_TRIPLES[etype], dtype=np.int64)
+            corners.append(conn[rows][:, triples].reshape(-1, 4))
+            counts.append(np.full(len(rows), len(triples)))
+            jac_solid.append(jac)
+        local = _FACES[etype]
+        f = np.where(local >= 0, conn[rows][:, np.maximum(local, 0)], -1)  # (m, faces, 4)
+        faces.append(f.reshape(-1, 4))
+        per_face = local.shape[0]
+        f_aspect.append(np.repeat(aim("aspect", np.inf), per_face))
+        f_warp.append(np.repeat(aim("warpage", 180.0), per_face))
+        f_skew.append(np.repeat(aim("skew", 90.0), per_face))
+
+    def cat(parts: list, shape: tuple[int, ...] = (0,), dtype=np.float64) -> NDArray:
+        return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
+
+    corners_g = cat(corners, (0, 4), np.int64)
+    quads_g = cat(quads, (0, 4), np.int64)
+    faces_g = cat(faces, (0, 4), np.int64)
+    used = np.concatenate([corners_g.ravel(), quads_g.ravel(), faces_g[faces_g >= 0]])
+    nodes = np.unique(used)
+
+    def local(idx: NDArray[np.int64]) -> NDArray[np.int64]:
+        return np.where(idx >= 0, np.searchsorted(nodes, idx), -1).astype(np.int64)
+
+    def log_aim(goal: NDArray[np.float64]) -> NDArray[np.float64]:
+        # a goal of 0 or less asks only for positive corners: log 0 = -inf never binds
+        with np.errstate(divide="ignore"):
+            return np.log(np.clip(goal + options.margin, 0.0, 1.0) * (goal > 0))
+
+    jac_s, jac_q = cat(jac_solid), cat(jac_quad)
+    # a face shared by two elements is measured once, against the stricter of their aims
+    # (aspect, warpage and skew do not depend on the face's orientation)
+    _, first, group = np.unique(
+        np.sort(faces_g, axis=1).reshape(-1, 4), axis=0, return_index=True, return_inverse=True
+    )
+    group = group.ravel()
+
+    def strictest(values: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = np.full(len(first), np.inf)
+        np.minimum.at(out, group, values)
+        return out
+
+    faces_g = faces_g[first]
+    aspect = np.maximum(strictest(cat(f_aspect)), 1.0)
+    warpage = strictest(cat(f_warp))
+    skew = strictest(cat(f_skew))
+    return _Problem(
+        nodes=nodes,
+        free=np.searchsorted(nodes, np.intersect1d(free, nodes)),
+        corners=local(corners_g),
+        elem_ptr=np.concatenate([[0], np.cumsum(cat(counts, dtype=np.int64))]).astype(np.int64),
+        log_aim=log_aim(jac_s),
+        jacobian_aim=np.concatenate([jac_s, jac_q]),
+        quads=local(quads_g),
+        quad_log_aim=log_aim(jac_q),
+        faces=local(faces_g),
+        log_aspect_aim=np.log(aspect),
+        warp_aim=np.radians(np.clip(warpage, 0.0, 180.0)),
+        skew_aim=np.radians(np.clip(skew, 0.0, 90.0)),
+        weights=np.asarray(options.weights, dtype=np.float64),
+    )
+
+
+def _element_jacobians(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Corner Jacobian of the problem's solids, then its quads, at local coordinates ``x``."""
+    c = pr.corners
+    a, b, e = (x[c[:, j]] - x[c[:, 0]] for j in (1, 2, 3))
+    d = np.einsum("ij,ij->i", np.cross(a, b), e)
+    starts = pr.elem_ptr[:-1]
+    out = []
+    if len(starts):
+        out.append(np.minimum.reduceat(d, starts) / np.maximum.reduceat(d, starts))
+        out[-1][np.maximum.reduceat(d, starts) <= 0] = -1.0
+    if len(pr.quads):
+        p = x[pr.quads]
+        n = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+        t = QUAD_TRIPLES
+        w = np.cross(p[:, t[:, 1]] - p[:, t[:, 0]], p[:, t[:, 2]] - p[:, t[:, 0]])
+        dq = np.einsum("qkj,qj->qk", w, n)
+        hi = dq.max(axis=1)
+        out.append(np.where(hi > 0, dq.min(axis=1) / np.where(hi > 0, hi, 1.0), -1.0))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def corner_ratio_penalty_numpy(
+    x: NDArray[np.float64],
+    corners: NDArray[np.int64],
+    elem_ptr: NDArray[np.int64],
+    log_aim: NDArray[np.float64],
+    quads: NDArray[np.int64],
+    quad_log_aim: NDArray[np.float64],
+) -> tuple[float, NDArray[np.float64]]:
+    """NumPy reference of the compiled corner penalty
+    (:func:`kneegui.smoothing.quality_kernel.corner_ratio_penalty`).
+
+    Returns ``(penalty, gradient (S, 3))``; ``(inf, zeros)`` when a corner is not positive.
+    """
+    grad = np.zeros_like(x)
+    total = 0.0
+    counts = np.diff(elem_ptr)
+    for k in np.unique(counts):
+        elems = np.flatnonzero(counts == k)
+        c = corners[(elem_ptr[elems][:, None] + np.arange(k)).ravel()]
+        a, b, e = (x[c[:, j]] - x[c[:, 0]] for j in (1, 2, 3))
+        d = np.einsum("ij,ij->i", np.cross(a, b), e)
+        if np.any(d <= 0):
+            return np.inf, np.zeros_like(x)
+        logs = np.log(d).reshape(-1, k)
+        u = log_aim[elems][:, None, None] - logs[:, :, None] + logs[:, None, :]
+        u[:, np.arange(k), np.arange(k)] = 0.0
+        pos = np.maximum(u, 0.0)
+        total += float(np.sum(pos * pos))
+        s = ((-2.0 * pos.sum(axis=2) + 2.0 * pos.sum(axis=1)).ravel() / d)[:, None]
+        ga, gb, ge = s * np.cross(b, e), s * np.cross(e, a), s * np.cross(a, b)
+        for col, g in ((1, ga), (2, gb), (3, ge), (0, -(ga + gb + ge))):
+            np.add.at(grad, c[:, col], g)
+    if len(quads):
+        p = x[quads]
+        pv, qv = p[:, 2] - p[:, 0], p[:, 3] - p[:, 1]
+        n = np.cross(pv, qv)
+        t = QUAD_TRIPLES
+        u_, v_ = p[:, t[:, 1]] - p[:, t[:, 0]], p[:, t[:, 2]] - p[:, t[:, 0]]  # (Q, 4, 3)
+        w = np.cross(u_, v_)
+        d = np.einsum("qkj,qj->qk", w, n)
+        if np.any(d <= 0):
+            return np.inf, np.zeros_like(x)
+        logs = np.log(d)
+        u = quad_log_aim[:, None, None] - logs[:, :, None] + logs[:, None, :]
+        u[:, np.arange(4), np.arange(4)] = 0.0
+        pos = np.maximum(u, 0.0)
+        total += float(np.sum(pos * pos))
+        s = ((-2.0 * pos.sum(axis=2) + 2.0 * pos.sum(axis=1)) / d)[:, :, None]
+        nn = np.broadcast_to(n[:, None, :], u_.shape)
+        gu, gv = s * np.cross(v_, nn), s * np.cross(nn, u_)
+        gp = (s * np.cross(np.broadcast_to(qv[:, None, :], w.shape), w)).sum(axis=1)
+        gq = (s * np.cross(w, np.broadcast_to(pv[:, None, :], w.shape))).sum(axis=1)
+        for k in range(4):
+            np.add.at(grad, quads[:, t[k, 1]], gu[:, k])
+            np.add.at(grad, quads[:, t[k, 2]], gv[:, k])
+            np.add.at(grad, quads[:, t[k, 0]], -(gu[:, k] + gv[:, k]))
+        for col, g in ((2, gp), (0, -gp), (3, gq), (1, -gq)):
+            np.add.at(grad, quads[:, col], g)
+    return total, grad
+
+
+def _penalty(pr: _Problem, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
+    """Corner and face penalties at local coordinates ``x``; fills ``grad``."""
+    value = corner_ratio_penalty(
+        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, QUAD_TRIPLES, pr.quad_log_aim, grad
+    )
+    if not np.isfinite(value):
+        return np.inf
+    return float(value) + float(
+        face_shape_penalty(
+            x, pr.faces, pr.log_aspect_aim, pr.warp_aim, pr.skew_aim, pr.weights, grad
+        )
+    )
+
+
+class _Objective:
+    """Penalties + anchor + constraints over the free nodes' scaled coordinates ``v = x / h``."""
+
+    def __init__(
+        self,
+        pr: _Problem,
+        x: NDArray[np.float64],
+        h: NDArray[np.float64],
+        anchor: float,
+        stiffness: float,
+    ) -> None:
+        self.pr, self.h, self.anchor, self.stiffness = pr, h, anchor, stiffness
+        self.work = x.copy()
+        self.start = x[pr.free].copy()
+        self.grad = np.zeros_like(x)
+        self.c_rows = np.zeros(0, dtype=np.int64)
+        self.c_normals, self.c_offsets = np.zeros((0, 3)), np.zeros(0)
+
+    def set_constraints(
+        self,
+        rows: NDArray[np.int64],
+        normals: NDArray[np.float64],
+        offsets: NDArray[np.float64],
+    ) -> None:
+        """Keep these free rows on the side ``normal . x >= offset``."""
+        self.c_rows, self.c_normals, self.c_offsets = rows, normals, offsets
+
+    def deepest_violation(self, v: NDArray[np.float64]) -> float:
+        """Largest distance (model units) by which a node is on the wrong side of its plane."""
+        if len(self.c_rows) == 0:
+            return 0.0
+        p = v.reshape(-1, 3)[self.c_rows] * self.h[self.c_rows]
+        gap = np.einsum("ij,ij->i", self.c_normals, p) - self.c_offsets
+        return float(max(0.0, -gap.min()))
+
+    def __call__(self, v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        pr, h = self.pr, self.h
+        p = v.reshape(-1, 3) * h
+        self.work[pr.free] = p
+        value = _penalty(pr, self.work, self.grad)
+        if not np.isfinite(value):
+            return np.inf, np.zeros_like(v)
+        dx = (p - self.start) / h
+        value += self.anchor * float(np.einsum("ij,ij->", dx, dx))
+        g = self.grad[pr.free] + (2.0 * self.anchor) * dx / h
+        if len(self.c_rows):
+            gap = np.einsum("ij,ij->i", self.c_normals, p[self.c_rows]) - self.c_offsets
+            short = np.minimum(gap, 0.0)
+            value += self.stiffness * float(np.einsum("i,i->", short, short))
+            np.add.at(g, self.c_rows, (2.0 * self.stiffness * short)[:, None] * self.c_normals)
+        return value, (g * h).ravel()
+
+
+def _node_lengths(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(F, 1) mean length of the face edges at each free node (its length scale)."""
+    f = pr.faces
+    nxt = np.where(np.roll(f, -1, axis=1) >= 0, np.roll(f, -1, axis=1), f[:, :1])
+    valid = f >= 0
+    length = np.linalg.norm(x[np.maximum(nxt, 0)] - x[np.maximum(f, 0)], axis=2)
+    total = np.bincount(f[valid], length[valid], minlength=len(x))
+    count = np.bincount(f[valid], minlength=len(x))
+    h = total[pr.free] / np.maximum(count[pr.free], 1)
+    fallback = float(h[h > 0].mean()) if np.any(h > 0) else 1.0
+    return np.where(h > 0, h, fallback)[:, None]
+
+
+def optimise_quality(
+    coords: NDArray[np.float64],
+    blocks: Mapping[str, ElementBlock],
+    free_nodes: NDArray[np.int64],
+    aims: QualityAims,
+    *,
+    constraints: ConstraintCallback | None = None,
+    options: QualityOptions | None = None,
+    progress: ProgressCallback | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> tuple[NDArray[np.float64], QualityOptimisationReport]:
+    """Move ``free_nodes`` together so that the elements around them meet their aims.
+
+    Parameters
+    ----------
+    coords : (N, 3) ndarray of float
+        Node coordinates; every corner of the elements around the free nodes must be positive
+        (an untangled mesh). Not modified.
+    blocks : mapping of str to ElementBlock
+        The model's elements (hex8, wedge6, pyramid5, tet4 solids and quad4 shells are used).
+    free_nodes : (F,) ndarray of int
+        Nodes that may move.
+    aims : QualityAims
+        Per element: the corner Jacobian to reach, the aspect, warpage and skew not to exceed
+        (:func:`quality_aims`).
+    constraints : callable, optional
+        ``constraints(coords) -> (nodes, normals, offsets)``, re-evaluated before each round;
+        each listed node is kept on the side ``normal . x >= offset`` by a quadratic penalty.
+    options : QualityOptions, optional
+    progress, cancel : callable, optional
+        ``progress(fraction, message)``; ``cancel()`` returning True raises
+        :class:`kneegui.errors.Cancelled` between rounds.
+
+    Returns
+    -------
+    coords : (N, 3) ndarray
+        New coordinates (only free nodes differ).
+    report : QualityOptimisationReport
+
+    Raises
+    ------
+    ValueError
+        If an element around the free nodes is inverted (untangle it first).
+    """
+    opt = options or QualityOptions()
+    report_progress = progress or (lambda fraction, message: None)
+    should_cancel = cancel or (lambda: False)
+    t0 = time.perf_counter()
+    x_all = np.array(coords, dtype=np.float64, copy=True)
+    free_nodes = np.unique(np.asarray(free_nodes, dtype=np.int64))
+    pr = _build_problem(blocks, len(x_all), free_nodes, aims, opt)
+    if len(pr.free) == 0:
+        return x_all, QualityOptimisationReport(seconds=time.perf_counter() - t0)
+    x = x_all[pr.nodes].copy()
+    j_before = _element_jacobians(pr, x)
+    if np.any(j_before <= 0):
+        raise ValueError("optimise_quality needs an untangled mesh: some elements are inverted")
+    row_of = np.full(len(x_all), -1)
+    row_of[pr.nodes[pr.free]] = np.arange(len(pr.free))
+    h = _node_lengths(pr, x)
+    start = x[pr.free].copy()
+    objective = _Objective(pr, x, h, opt.anchor, opt.constraint_stiffness)
+    iterations = evaluations = rounds = 0
+    previous = np.inf
+    converged = False
+    for rnd in range(opt.rounds):
+        if should_cancel():
+            raise Cancelled("quality optimisation cancelled")
+        v0 = (x[pr.free] / h).ravel()
+        if constraints is not None:
+            x_all[pr.nodes] = x
+            nodes, normals, offsets = constraints(x_all)
+            rows = row_of[np.asarray(nodes, dtype=np.int64)]
+            keep = rows >= 0
+            objective.set_constraints(
+                rows[keep], np.asarray(normals)[keep], np.asarray(offsets)[keep]
+            )
+            if converged and objective.deepest_violation(v0) <= opt.constraint_tolerance:
+                break
+        elif converged:
+            break
+        result = minimize_lbfgs(objective, v0, opt.iterations_per_round)
+        x[pr.free] = result.x.reshape(-1, 3) * h
+        rounds += 1
+        iterations += int(result.nit)
+        evaluations += int(result.nfev)
+        report_progress((rnd + 1) / opt.rounds, "optimising element quality")
+        converged = result.fun <= 1e-12 or previous - result.fun <= opt.tolerance * result.fun
+        previous = float(result.fun)
+    j_after = _element_jacobians(pr, x)
+    x_all[pr.nodes] = x
+    return x_all, QualityOptimisationReport(
+        free_nodes=len(pr.free),
+        elements=len(j_before),
+        below_aim_before=int(np.sum(j_before < pr.jacobian_aim)),
+        below_aim_after=int(np.sum(j_after < pr.jacobian_aim)),
+        worst_before=float(j_before.min(initial=np.inf)),
+        worst_after=float(j_after.min(initial=np.inf)),
+        rounds=rounds,
+        iterations=iterations,
+        evaluations=evaluations,
+        max_displacement=float(np.linalg.norm(x[pr.free] - start, axis=1).max(initial=0.0)),
+        seconds=time.perf_counter() - t0,
+    )

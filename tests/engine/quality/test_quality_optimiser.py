@@ -1,0 +1,277 @@
+"""The quality optimiser: its penalties (against NumPy, finite differences and the metrics of
+kneegui.quality), what it guarantees (aims met, fixed nodes, constraints, purity, determinism)
+and its refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kneegui.errors import Cancelled
+from kneegui.model import ElementBlock
+from kneegui.quality import compute_quality
+from kneegui.smoothing.quality_kernel import corner_ratio_penalty, face_shape_penalty
+from kneegui.smoothing.quality_optimiser import (
+    QUAD_TRIPLES,
+    QualityAims,
+    QualityOptions,
+    _build_problem,
+    corner_ratio_penalty_numpy,
+    optimise_quality,
+    quality_aims,
+    shortfall_region,
+)
+
+CUBE = np.array(
+    [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)],
+    dtype=float,
+)
+
+
+def mixed_blocks() -> tuple[np.ndarray, dict[str, ElementBlock]]:
+    """One hex, one wedge, one pyramid, one tet and one quad shell, slightly distorted."""
+    rng = np.random.default_rng(7)
+    hexa = CUBE
+    wedge = np.array([(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1)]) + 2.0
+    pyramid = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0.5, 0.5, 0.8)]) + 4.0
+    tet = np.array([(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]) + 6.0
+    quad = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]) + 8.0
+    pts = [hexa, wedge, pyramid, tet, quad]
+    coords = np.vstack(pts).astype(float) + rng.normal(0.0, 0.08, (sum(map(len, pts)), 3))
+    start = np.cumsum([0] + [len(p) for p in pts])
+    blocks = {
+        etype: ElementBlock(etype, np.array([i + 1]), np.array([1]), np.arange(a, b)[None, :])
+        for i, (etype, a, b) in enumerate(
+            zip(("hex8", "wedge6", "pyramid5", "tet4", "quad4"), start[:-1], start[1:], strict=True)
+        )
+    }
+    return coords, blocks
+
+
+def uniform_aims(blocks, jacobian, aspect=np.inf, warpage=180.0, skew=90.0) -> QualityAims:
+    def per(value):
+        return {etype: np.full(len(b), float(value)) for etype, b in blocks.items()}
+
+    return QualityAims(per(jacobian), per(aspect), per(warpage), per(skew))
+
+
+def total_penalty(pr, x):
+    grad = np.zeros_like(x)
+    value = corner_ratio_penalty(
+        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, QUAD_TRIPLES, pr.quad_log_aim, grad
+    )
+    value += face_shape_penalty(
+        x, pr.faces, pr.log_aspect_aim, pr.warp_aim, pr.skew_aim, pr.weights, grad
+    )
+    return value, grad
+
+
+# ---------------------------------------------------------------------- penalties
+def test_compiled_corner_penalty_equals_numpy_reference_and_finite_differences():
+    coords, blocks = mixed_blocks()
+    pr = _build_problem(blocks, len(coords), np.arange(len(coords)), uniform_aims(blocks, 0.95),
+                        QualityOptions())  # fmt: skip
+    x = coords[pr.nodes]
+    grad = np.zeros_like(x)
+    value = corner_ratio_penalty(
+        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, QUAD_TRIPLES, pr.quad_log_aim, grad
+    )
+    ref, ref_grad = corner_ratio_penalty_numpy(
+        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, pr.quad_log_aim
+    )
+    assert value > 0
+    assert value == pytest.approx(ref, rel=1e-12)
+    np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-12)
+    h = 1e-6
+    for i, k in np.ndindex(*x.shape):
+        plus, minus = x.copy(), x.copy()
+        plus[i, k] += h
+        minus[i, k] -= h
+        numeric = (
+            corner_ratio_penalty_numpy(plus, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads,
+                                       pr.quad_log_aim)[0]
+            - corner_ratio_penalty_numpy(minus, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads,
+                                         pr.quad_log_aim)[0]
+        ) / (2 * h)  # fmt: skip
+        assert numeric == pytest.approx(ref_grad[i, k], abs=1e-6)
+
+
+def test_face_penalty_gradient_matches_finite_differences():
+    coords, blocks = mixed_blocks()
+    aims = uniform_aims(blocks, 0.0, aspect=1.02, warpage=1.0, skew=2.0)
+    pr = _build_problem(blocks, len(coords), np.arange(len(coords)), aims, QualityOptions())
+    x = coords[pr.nodes]
+    grad = np.zeros_like(x)
+    value = face_shape_penalty(
+        x, pr.faces, pr.log_aspect_aim, pr.warp_aim, pr.skew_aim, pr.weights, grad
+    )
+    assert value > 0
+    h = 1e-6
+    for i, k in np.ndindex(*x.shape):
+        plus, minus = x.copy(), x.copy()
+        plus[i, k] += h
+        minus[i, k] -= h
+        g = np.zeros_like(x)
+        f_plus = face_shape_penalty(
+            plus, pr.faces, pr.log_aspect_aim, pr.warp_aim, pr.skew_aim, pr.weights, g
+        )
+        f_minus = face_shape_penalty(
+            minus, pr.faces, pr.log_aspect_aim, pr.warp_aim, pr.skew_aim, pr.weights, g
+        )
+        assert (f_plus - f_minus) / (2 * h) == pytest.approx(grad[i, k], abs=1e-6)
+
+
+def test_a_face_folded_flat_still_feels_the_warpage_pull():
+    """Warpage near 180 deg: the angle's gradient does not vanish there (the cosine's does)."""
+    x = np.array([(0, 0, 0), (1, 0, 0), (0.0, 1.0, 0.001), (0.02, 0.01, 0.0)])
+    faces = np.array([[0, 1, 2, 3]])
+    grad = np.zeros_like(x)
+    value = face_shape_penalty(
+        x, faces, np.array([10.0]), np.array([0.1]), np.array([np.pi]), np.ones(3), grad
+    )
+    assert value > 0 and np.abs(grad).max() > 1e-2
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_penalties_vanish_exactly_inside_the_aims(seed):
+    """Each penalty is zero when the element meets its aim as kneegui.quality measures it,
+    and positive when the aim is a hair stricter than the measured value."""
+    coords, blocks = mixed_blocks()
+    coords = coords + np.random.default_rng(seed).normal(0.0, 0.05, coords.shape)
+    q = compute_quality(coords, blocks)
+    measured = {
+        m: {etype: q[etype].metric(m).copy() for etype in blocks}
+        for m in ("jacobian", "aspect", "warpage", "skew")
+    }
+    free = np.arange(len(coords))
+    loose = QualityAims(
+        {e: v - 1e-6 - QualityOptions().margin for e, v in measured["jacobian"].items()},
+        {e: v + 1e-6 for e, v in measured["aspect"].items()},
+        {e: v + 1e-6 for e, v in measured["warpage"].items()},
+        {e: v + 1e-6 for e, v in measured["skew"].items()},
+    )
+    pr = _build_problem(blocks, len(coords), free, loose, QualityOptions())
+    assert total_penalty(pr, coords[pr.nodes])[0] == 0.0
+    for metric, sign in (("jacobian", +1), ("aspect", -1), ("warpage", -1), ("skew", -1)):
+        values = {e: v.copy() for e, v in getattr(loose, metric).items()}
+        bumped = "hex8"
+        if metric == "jacobian":
+            values[bumped] = measured[metric][bumped] + 1e-3 - QualityOptions().margin
+        else:
+            values[bumped] = measured[metric][bumped] + sign * 1e-3
+        strict = QualityAims(**{**loose.__dict__, metric: values})
+        pr = _build_problem(blocks, len(coords), free, strict, QualityOptions())
+        assert total_penalty(pr, coords[pr.nodes])[0] > 0.0, metric
+
+
+# ---------------------------------------------------------------------- aims and region
+def test_quality_aims_take_initial_values_and_warn_levels(block_model):
+    model = block_model(3, 3, 3, bone_layers=1)
+    coords = model.coords.copy()
+    coords[model.blocks["hex8"].conn[13, 6]] += (0.3, 0.3, 0.3)  # distort one element
+    q = compute_quality(coords, model.blocks)
+    aims = quality_aims(q, model.blocks)
+    hexq = q["hex8"]
+    np.testing.assert_allclose(aims.jacobian["hex8"], np.minimum(hexq.jacobian_corner, 0.6))
+    np.testing.assert_allclose(aims.aspect["hex8"], np.maximum(hexq.aspect, 5.0))
+    np.testing.assert_allclose(aims.warpage["hex8"], np.maximum(hexq.warpage, 15.0))
+    np.testing.assert_allclose(aims.skew["hex8"], np.maximum(hexq.skew, 40.0))
+    assert quality_aims(q, model.blocks, jacobian_cap=0.9).jacobian["hex8"].max() == 0.9
+
+
+def test_shortfall_region_is_around_the_elements_that_miss_an_aim(block_model):
+    model = block_model(5, 5, 5, bone_layers=1, skin=False)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    everything = np.arange(model.n_nodes)
+    assert len(shortfall_region(model.coords, model.blocks, aims, everything)) == 0
+    coords = model.coords.copy()
+    centre = np.argmin(np.linalg.norm(coords - 2.5, axis=1))
+    coords[centre] += (0.45, 0.4, 0.0)
+    region = shortfall_region(coords, model.blocks, aims, everything, rings=0)
+    conn = model.blocks["hex8"].conn
+    around = np.unique(conn[(conn == centre).any(axis=1)])
+    np.testing.assert_array_equal(region, around)
+    grown = shortfall_region(coords, model.blocks, aims, everything, rings=1)
+    assert set(around) < set(grown)
+    assert len(shortfall_region(coords, model.blocks, aims, np.array([0]), rings=1)) == 0
+
+
+# ---------------------------------------------------------------------- the optimiser
+def distorted_block(block_model):
+    """A 4x4x4 flesh block whose interior nodes are pushed so that some elements drop far
+    below their initial (perfect) quality, none inverted."""
+    model = block_model(4, 4, 4, bone_layers=0, skin=True)
+    coords = model.coords.copy()
+    c = coords - 2.0
+    interior = np.all(np.abs(c) < 1.99, axis=1)
+    r = np.linalg.norm(c[:, :2], axis=1)
+    coords[interior, 0] += 0.45 * np.exp(-(r[interior] ** 2)) * np.sign(c[interior, 2] + 0.5)
+    coords[interior, 2] += 0.3 * np.sin(c[interior, 0])
+    return model, coords
+
+
+def test_optimiser_brings_elements_within_their_aims(block_model):
+    model, coords = distorted_block(block_model)
+    q0 = compute_quality(model.coords, model.blocks)
+    aims = quality_aims(q0, model.blocks)
+    before = compute_quality(coords, model.blocks)
+    assert before.n_inverted == 0 and before.worst_jacobian() < 0.5
+    interior = np.flatnonzero(np.all(np.abs(model.coords - 2.0) < 1.99, axis=1))
+    snapshot = coords.copy()
+    out, report = optimise_quality(coords, model.blocks, interior, aims)
+    np.testing.assert_array_equal(coords, snapshot)  # input untouched
+    after = compute_quality(out, model.blocks)
+    assert after.n_inverted == 0
+    assert after.worst_jacobian() > 0.6 - 0.02 > before.worst_jacobian()
+    for metric, level in (("aspect", 5.0), ("warpage", 15.0), ("skew", 40.0)):
+        assert max(float(after[e].metric(metric).max()) for e in after) <= level + 0.5, metric
+    moved = np.flatnonzero(np.any(out != coords, axis=1))
+    assert set(moved) <= set(interior)
+    assert report.free_nodes == len(interior)
+    assert report.below_aim_after < report.below_aim_before
+    assert report.worst_after == pytest.approx(after.worst_jacobian())
+    again, _ = optimise_quality(coords, model.blocks, interior, aims)
+    np.testing.assert_array_equal(out, again)  # deterministic
+
+
+def test_constraints_keep_nodes_on_their_side(block_model):
+    """A plane the free optimum would cross (the distorted block's interior relaxes towards
+    x = 2 and beyond); with it as a constraint no node ends farther than the tolerance."""
+    model, coords = distorted_block(block_model)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(model.coords - 2.0) < 1.99, axis=1))
+    free_out, _ = optimise_quality(coords, model.blocks, interior, aims)
+    watched = interior[coords[interior, 0] > 2.2]
+    limit = coords[watched, 0] - 0.01  # x >= start - 0.01 for these nodes
+    assert np.any(free_out[watched, 0] < limit - 0.05)
+
+    def keep_right(x):
+        return watched, np.tile([1.0, 0.0, 0.0], (len(watched), 1)), limit
+
+    options = QualityOptions(constraint_stiffness=1e4)
+    out, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=keep_right,
+                              options=options)  # fmt: skip
+    assert np.all(out[watched, 0] >= limit - options.constraint_tolerance)
+    assert compute_quality(out, model.blocks).n_inverted == 0
+
+
+def test_inverted_input_is_refused_and_cancel_raises(block_model):
+    model, coords = distorted_block(block_model)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(model.coords - 2.0) < 1.99, axis=1))
+    with pytest.raises(Cancelled):
+        optimise_quality(coords, model.blocks, interior, aims, cancel=lambda: True)
+    flipped = coords.copy()
+    node = interior[0]
+    flipped[node] = 2.0 * model.coords[node] - coords[node] + (1.3, 1.3, 1.3)
+    assert compute_quality(flipped, model.blocks).n_inverted > 0
+    with pytest.raises(ValueError, match="untangled"):
+        optimise_quality(flipped, model.blocks, [node], aims)
+
+
+def test_nothing_free_changes_nothing(block_model):
+    model, coords = distorted_block(block_model)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    out, report = optimise_quality(coords, model.blocks, np.zeros(0, dtype=int), aims)
+    np.testing.assert_array_equal(out, coords)
+    assert report.free_nodes == 0
