@@ -51,16 +51,22 @@ def smooth_current(
             progress(0.6 * fraction, message)
 
         coords, relax_report = relax(coords, relax_progress, cancelled)
-        polish = ""
+        stages = ""
+        quality = relax_report.quality
+        if quality is not None and quality.free_nodes:
+            stages += (
+                f", quality optimised: worst Jacobian {quality.worst_before:.3f} -> "
+                f"{quality.worst_after:.3f}"
+            )
         done = relax_report.polish
         if done is not None and done.moved_nodes:
-            polish = (
+            stages += (
                 f", polish: worst Jacobian {done.worst_jacobian_before:.3f} -> "
                 f"{done.worst_jacobian_after:.3f}"
             )
         relaxed = (
             f"relaxed {relax_report.free_nodes} nodes ({relax_report.inverted_corners_before} "
-            f"inverted corners -> {relax_report.inverted_corners_after}{polish}, "
+            f"inverted corners -> {relax_report.inverted_corners_after}{stages}, "
             f"{relax_report.seconds:.1f} s); "
         )
 

@@ -48,6 +48,13 @@ from kneegui.geometry.transforms import RigidTransform
 from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
 from kneegui.optimize import minimize_lbfgs
 from kneegui.reposition.contact import BoneSurfaceDistance
+from kneegui.smoothing.quality_optimiser import (
+    QualityAims,
+    QualityOptimisationReport,
+    QualityOptions,
+    optimise_quality,
+    shortfall_region,
+)
 from kneegui.smoothing.smoother import SmoothingReport, corner_determinants, smooth_mesh
 
 ProgressCallback = Callable[[float, str], None]
@@ -238,9 +245,16 @@ class RelaxOptions:
         Nodes closer to a bone than this (model units) get a contact plane.
     contact_clearance : float
         Distance from the bone surface the contact holds nodes at (model units).
+    optimise_quality : bool
+        After the energy has untangled the region, bring its elements within their quality
+        aims with :func:`kneegui.smoothing.quality_optimiser.optimise_quality` (all four
+        metrics, all nodes together, the bone contact as constraints; needs the element
+        blocks and aims, see :class:`ElasticRelaxation`).
+    quality : QualityOptions
+        Parameters of that optimisation.
     polish : bool
-        After the energy, lift the worst elements with the quality-guarded smoother (needs the
-        element blocks, see :class:`ElasticRelaxation`).
+        Then lift the worst elements with the quality-guarded smoother (needs the element
+        blocks, see :class:`ElasticRelaxation`).
     restarts : int
         How many times the rounds start again when corners are still inverted after
         ``max_rounds``: the nodes of those corners go back to their posed positions and the
@@ -274,6 +288,12 @@ class RelaxOptions:
     contact_band: float = 3.0
     contact_force_depth: float = 1.0
     contact_clearance: float = 0.2
+    optimise_quality: bool = True
+    quality: QualityOptions = field(
+        default_factory=lambda: QualityOptions(
+            rounds=15, iterations_per_round=150, constraint_stiffness=100.0
+        )
+    )
     polish: bool = True
     restarts: int = 2
     restart_eps: float = 0.05
@@ -299,12 +319,14 @@ class RelaxReport:
     deepest_penetration: float = 0.0
     seconds: float = 0.0
     history: list[dict[str, float]] = field(default_factory=list)
+    quality: QualityOptimisationReport | None = None  # what the quality optimisation did
     polish: SmoothingReport | None = None  # what the polish did (the smoother's own report)
 
     def to_dict(self) -> dict[str, object]:
         """JSON-ready summary."""
         out = dict(self.__dict__)
         out.pop("history")
+        out["quality"] = None if self.quality is None else self.quality.to_dict()
         out["polish"] = None if self.polish is None else self.polish.to_dict()
         return out
 
@@ -509,6 +531,10 @@ class ElasticRelaxation:
     goals : mapping of str to (m,) ndarray, optional
         Per element of ``blocks``, the corner Jacobian the polish aims at
         (:func:`kneegui.smoothing.pipeline.smoothing_goals`; default 0.6 everywhere).
+    aims : QualityAims, optional
+        Per element of ``blocks``, the quality the optimisation aims at
+        (:func:`kneegui.smoothing.quality_optimiser.quality_aims`); without them there is no
+        quality optimisation.
     """
 
     def __init__(
@@ -526,10 +552,12 @@ class ElasticRelaxation:
         sliding: NDArray[np.int64] | None = None,
         blocks: Mapping[str, ElementBlock] | None = None,
         goals: Mapping[str, NDArray[np.float64]] | None = None,
+        aims: QualityAims | None = None,
     ) -> None:
         self.options = options or RelaxOptions()
         self.blocks = blocks
         self.goals = goals
+        self.aims = aims
         n = len(rest_coords)
         self.rest = np.asarray(rest_coords, dtype=np.float64)
         self.region_radius = float(region_radius)
@@ -798,6 +826,7 @@ class ElasticRelaxation:
 
             return fun
 
+        optimise_next = opt.optimise_quality and self.blocks is not None and self.aims is not None
         for attempt in range(1 + opt.restarts):
             if attempt:
                 if d_min > 0:
@@ -852,19 +881,29 @@ class ElasticRelaxation:
                 stiff_enough = stiffness >= opt.contact_stiffness or not len(c_local)
                 if d_min > 0 and stiff_enough and (decrease < opt.tolerance or rnd_untangled):
                     break
+                if d_min > 0 and optimise_next:
+                    break  # untangled: the quality optimisation takes it from here
                 rnd_untangled = d_min > 0 and eps <= 1e-9
                 if d_min > 0:
                     stiffness = min(4.0 * stiffness, opt.contact_stiffness)
         x[sub.nodes] = xl
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
+        if optimise_next and d_min > 0:
+            x = self._optimise_quality(
+                x,
+                transforms if use_contact else None,
+                report,
+                lambda fraction, message: report_progress(0.8 + 0.1 * fraction, message),
+                cancel,
+            )
         if opt.polish and self.blocks is not None:
             x = self._polish(
                 x,
                 free,
                 transforms if use_contact else None,
                 report,
-                lambda fraction, message: report_progress(0.8 + 0.2 * fraction, message),
+                lambda fraction, message: report_progress(0.9 + 0.1 * fraction, message),
                 cancel,
             )
         report.seconds = time.perf_counter() - t0
@@ -906,6 +945,42 @@ class ElasticRelaxation:
         length = np.linalg.norm(n, axis=1)
         ok = length > 0
         return rows[ok], n[ok] / length[ok, None]
+
+    def _optimise_quality(
+        self,
+        x: NDArray[np.float64],
+        transforms: Mapping[str, RigidTransform] | None,
+        report: RelaxReport,
+        progress: ProgressCallback,
+        cancel: Callable[[], bool] | None,
+    ) -> NDArray[np.float64]:
+        """Bring the elements around the relaxable nodes within their quality aims, every node
+        moving together, bones kept out by their contact planes. The skin is free here: held
+        in its tangent planes, the folded crease behind a knee flexed to 120 deg kept 142
+        elements warped beyond 30 deg and a worst Jacobian of 0.11 (free: 80 and 0.19)."""
+        assert self.blocks is not None and self.aims is not None
+        free = shortfall_region(x, self.blocks, self.aims, self.free, self.options.rings)
+        if len(free) == 0:
+            return x
+        constraints = None
+        if transforms is not None:
+            contact = self.contact_nodes[np.isin(self.contact_nodes, free)]
+
+            def constraints(coords: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+                which, normals, offsets, _ = self._contact_planes(coords, contact, transforms)
+                return contact[which], normals, offsets
+
+        x, report.quality = optimise_quality(
+            x,
+            self.blocks,
+            free,
+            self.aims,
+            constraints=constraints,
+            options=self.options.quality,
+            progress=progress,
+            cancel=cancel,
+        )
+        return x
 
     def _polish(
         self,

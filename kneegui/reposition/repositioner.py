@@ -61,6 +61,7 @@ from kneegui.reposition.skin_contours import (
 from kneegui.setup.condyles import surface_node_indices
 from kneegui.setup.format import JointSetup
 from kneegui.smoothing.pipeline import smoothing_goals
+from kneegui.smoothing.quality_optimiser import quality_aims
 
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.
@@ -457,6 +458,7 @@ class Repositioner:
         face_tets, virtual = shell_face_tetrahedra(model.blocks, shells, solids, model.n_nodes)
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         free = self._soft_near_joint()
+        initial = compute_quality(model.coords, model.blocks)
         options = self.options.relaxation
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
@@ -472,7 +474,8 @@ class Repositioner:
             region_radius=self.options.relax_region * size,
             sliding=g.skin,
             blocks=model.blocks,
-            goals=smoothing_goals(compute_quality(model.coords, model.blocks)),
+            goals=smoothing_goals(initial),
+            aims=quality_aims(initial, model.blocks),
         )
 
     def _soft_near_joint(self) -> NDArray[np.int64]:

@@ -313,8 +313,10 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     wait_idle(qtbot, ws, timeout=150)
     assert demo_window.last_error is None, demo_window.last_error
     assert ws.smoothed
-    # the status line says what the relaxation, its polish and the smoother did
-    assert any("relaxed" in m and "polish: worst Jacobian" in m for m in messages), messages
+    # the status line says what the relaxation, its quality optimisation and the smoother did
+    assert any("relaxed" in m and "quality optimised: worst Jacobian" in m for m in messages), (
+        messages
+    )
     assert not any("warning" in m and "reaches" in m for m in messages), messages  # no overlap
     # tissue left inside a bone is reported, as the engine counts it
     in_bones = ws.poser.tissue_in_bones(ws.coords, 90.0)["nodes"]

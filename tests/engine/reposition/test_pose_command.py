@@ -81,6 +81,9 @@ def test_pose_at_the_initial_angle_passes_and_reports(demo_files, tmp_path):
 
 
 def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
+    """Each angle is gated on its own: at 30 deg the small demo keeps its initial worst
+    Jacobian and is written; at 120 deg it does not (flesh and the demo's PCL pressed between
+    tibia and femur), so that deck is only written with --force and the exit code is 3."""
     deck, setup = demo_files
     out = tmp_path / "angles"
     argv = [
@@ -90,22 +93,23 @@ def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
         str(setup),
         "--flexion",
         "30",
-        "60",
+        "120",
         "--out",
         str(out),
         "--no-smooth",
     ]
     result = kneegui(*argv, cwd=tmp_path)
-    # the demo's worst Jacobian drops below the initial one: the gate fails, nothing written
     assert result.returncode == 3, result.stdout + result.stderr
-    assert "fails the quality gate" in result.stdout
-    assert not any(out.glob("flex_*/*.k"))
+    assert "120 deg" in result.stdout and "fails the quality gate" in result.stdout
+    assert (out / "flex_30" / "demo_leg.k").is_file()
+    assert not (out / "flex_120" / "demo_leg.k").exists()
     result = kneegui(*argv, "--force", cwd=tmp_path)
     assert result.returncode == 3
-    for angle in ("30", "60"):
+    for angle in ("30", "120"):
         posed = read_deck(out / f"flex_{angle}" / "demo_leg.k")
         report = json.loads((out / f"flex_{angle}" / "report.json").read_text())
         assert report["target_flexion"] == float(angle)
+        assert report["gate"]["passed"] == (angle == "30")
         assert posed.n_nodes == read_deck(deck).n_nodes
         assert not np.allclose(posed.coords, read_deck(deck).coords)
 

@@ -6,15 +6,16 @@ import numpy as np
 import pytest
 
 from kneegui.model import ElementBlock
+from kneegui.optimize import minimize_lbfgs
 from kneegui.quality import compute_quality
 from kneegui.reposition.relax import (
     ElasticRelaxation,
     RelaxOptions,
     _Subproblem,
     corner_tetrahedra,
-    minimize_lbfgs,
     shell_face_tetrahedra,
 )
+from kneegui.smoothing.quality_optimiser import quality_aims
 from kneegui.smoothing.smoother import corner_determinants
 
 
@@ -168,7 +169,12 @@ def test_polish_lifts_the_worst_element_the_energy_leaves():
     sheared = coords.copy()
     sheared[node(2, 2, 2)] += [6.0, 5.0, 0.0]  # valid, with poor corners around it
     # an energy stopped after one iteration leaves them poor; the polish must lift them
-    short = {"max_rounds": 1, "iterations_per_round": 1, "seed_shape": 1.05}
+    short = {
+        "max_rounds": 1,
+        "iterations_per_round": 1,
+        "seed_shape": 1.05,
+        "optimise_quality": False,
+    }
     plain, plain_report = relaxation(coords, blocks, free, **short).relax(sheared)
     rx = relaxation(coords, blocks, free, **short)
     rx.blocks = blocks
@@ -181,10 +187,33 @@ def test_polish_lifts_the_worst_element_the_energy_leaves():
     np.testing.assert_array_equal(polished[boundary], sheared[boundary])
 
 
+def test_quality_optimisation_brings_the_region_within_its_aims():
+    """After the energy has untangled the region, every element around the free nodes is
+    brought to its aim (its initial corner Jacobian, capped at 0.6), the boundary untouched."""
+    coords, blocks, boundary, node = hex_block(4)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    sheared = coords.copy()
+    sheared[node(2, 2, 2)] += [6.0, 5.0, 0.0]
+    sheared[node(1, 2, 2)] += [3.0, -2.0, 1.0]
+    short = {"max_rounds": 1, "iterations_per_round": 1, "seed_shape": 1.05, "polish": False}
+    plain, plain_report = relaxation(coords, blocks, free, **short).relax(sheared)
+    rx = relaxation(coords, blocks, free, **short)
+    rx.blocks = blocks
+    rx.aims = quality_aims(compute_quality(coords, blocks), blocks)
+    optimised, report = rx.relax(sheared)
+    assert plain_report.quality is None and report.quality is not None
+    worst_plain = compute_quality(plain, blocks).worst_jacobian()
+    worst = compute_quality(optimised, blocks).worst_jacobian()
+    assert worst_plain < 0.5 and worst >= 0.6 - 0.02
+    assert report.quality.worst_after == pytest.approx(worst)
+    assert report.to_dict()["quality"]["below_aim_after"] == 0
+    np.testing.assert_array_equal(optimised[boundary], sheared[boundary])
+
+
 _LBFGS_RUN = """
 import hashlib
 import numpy as np
-from kneegui.reposition.relax import minimize_lbfgs
+from kneegui.optimize import minimize_lbfgs
 
 rng = np.random.default_rng(3)
 n = 120_000

@@ -30,22 +30,14 @@ def known_gap(angle: float, reason: str):
 
 # the counts below: python scripts/worst_elements.py ANGLE --elements 2000
 CROSSING_GAP = (
-    "the mapping creases the posterior skin from 60 deg on and the relaxation slides skin nodes "
-    "along it, so neighbouring contours cross there (small demo, relaxed pose: 10, 23 and 45 skin "
-    "nodes beyond the neighbouring contour's plane at 60, 90 and 120 deg)"
+    "the mapping creases the posterior skin from 60 deg on and the relaxation moves skin nodes "
+    "with the tissue under them, so neighbouring contours cross there (small demo, relaxed pose: "
+    "6, 19 and 43 skin nodes beyond the neighbouring contour's plane at 60, 90 and 120 deg)"
 )
 PENETRATION_GAP = (
-    "the relaxation lets tissue next to a ligament or capsule attachment go as deep into a "
-    "bone as the attachment itself, and holds tissue out of a bone by a penalty with a bounded "
-    "force (so that no element inverts): 2 nodes of the small demo stay deeper than 0.5 mm at "
-    "30 deg (in the femur), 2 at 90 deg (femur, fibula) and 4 at 120 deg (tibia)"
-)
-
-
-WORST_JACOBIAN_GAP = (
-    "the small demo's worst element at 90 deg is knee flesh behind the medial tibial plateau "
-    "(0.18 against the initial 0.33), tissue the mapping carries into the tibia; the MCL comes "
-    "next (0.23)"
+    "at 30 deg the small demo's patella, turned with 0.65 of the knee's flexion about the F-E "
+    "axis, reaches 0.6 mm into the femur (the bone-overlap check reports it) and pinches the "
+    "tissue between them: 1 node stays deeper than 0.5 mm inside the femur"
 )
 
 
@@ -95,21 +87,23 @@ def test_no_inverted_elements(small_leg, small_posed, angle):
 
 
 def test_deep_flexion_is_untangled_by_restarting(small_repositioner, small_leg):
-    # without the push out of the bones before the relaxation and with free skin (the former
-    # default) the tissue behind the plateau is pinched between tibia and femur at 130 deg: the
-    # first rounds end with three nodes pressed onto one point (2 inverted elements without the
-    # restarts); the restarts put them back and the last one frees them from the contact
+    """Corners still inverted when the rounds run out: their nodes go back to the mapped pose
+    and the rounds start again from a soft barrier; the last restart frees them from the bone
+    contact. One round per attempt leaves the small demo at 130 deg tangled after the first
+    (it used to take the default 20 rounds before the push out of the bones; that depended on
+    the machine's round-off, so the test forces it)."""
     rep = small_repositioner.with_options(
-        relax_contact_reach=0.0, relaxation=RelaxOptions(slide_skin=False)
+        relax_contact_reach=0.0,
+        relaxation=RelaxOptions(max_rounds=1, restarts=1, optimise_quality=False, polish=False),
     )
     result = rep.pose_detailed(130.0, remeasure=False)
     q = compute_quality(result.coords, small_leg.model.blocks)
-    assert result.relaxation.restarts >= 1
+    assert result.relaxation.restarts == 1
+    assert result.relaxation.rounds == 2
     assert result.relaxation.contact_released > 0
     assert q.n_inverted == 0
 
 
-@pytest.mark.xfail(strict=True, reason=WORST_JACOBIAN_GAP)
 def test_worst_jacobian_at_90_is_at_least_90_percent_of_the_initial(small_leg, small_posed):
     initial = compute_quality(small_leg.model.coords, small_leg.model.blocks).worst_jacobian()
     posed = compute_quality(small_posed(90.0).coords, small_leg.model.blocks).worst_jacobian()
@@ -132,9 +126,7 @@ def test_relaxation_leaves_the_initial_pose_alone(small_leg, small_repositioner)
     assert result.relaxation.free_nodes == 0
 
 
-@pytest.mark.parametrize(
-    "angle", [9.0, *(known_gap(a, PENETRATION_GAP) for a in (30.0, 90.0, 120.0))]
-)
+@pytest.mark.parametrize("angle", [9.0, known_gap(30.0, PENETRATION_GAP), 90.0, 120.0])
 def test_soft_tissue_inside_skin_and_outside_bones(
     small_leg, small_setup, small_repositioner, small_posed, angle
 ):
