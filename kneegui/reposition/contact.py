@@ -109,12 +109,10 @@ class BoneSurfaceDistance:
         m, width = tris.shape
         d_all = np.full((m, width), np.inf)
         q_all = np.zeros((m, width, 3))
-        for j in range(width):
-            t = tris[:, j]
-            ok = t >= 0
-            if ok.any():
-                q_all[ok, j] = closest_on_triangles(p[ok], self.tri_xyz[t[ok]])
-                d_all[ok, j] = np.linalg.norm(p[ok] - q_all[ok, j], axis=1)
+        ok = tris >= 0  # every (point, incident triangle) pair in one vectorised call
+        rows = np.broadcast_to(np.arange(m)[:, None], tris.shape)[ok]
+        q_all[ok] = closest_on_triangles(p[rows], self.tri_xyz[tris[ok]])
+        d_all[ok] = np.linalg.norm(p[rows] - q_all[ok], axis=1)
         rows = np.arange(m)
         j_best = np.argmin(d_all, axis=1)
         best, point = d_all[rows, j_best], q_all[rows, j_best]
