@@ -56,6 +56,10 @@ class BonePose:
         Table changes applied (internal rotation, patellar flexion, medial tilt), degrees.
     iterations : int
         Newton iterations used.
+    patellar_lift : float
+        How far the patella was lifted off the femur after its tables, radially from the F-E
+        axis (model units; set by :class:`kneegui.reposition.Repositioner`'s patellar
+        seating, 0 here).
     """
 
     transforms: dict[str, RigidTransform]
@@ -67,6 +71,7 @@ class BonePose:
     patellar_flexion_deg: float
     patellar_tilt_deg: float
     iterations: int
+    patellar_lift: float = 0.0
 
 
 def _tibia_relative(axes: JointAxes, fe_deg: float, rot_deg: float) -> RigidTransform:

@@ -166,6 +166,7 @@ def pose_model(
             "tibial_rotation_deg": result.bone_pose.tibial_rotation_deg,
             "patellar_flexion_deg": result.bone_pose.patellar_flexion_deg,
             "patellar_tilt_deg": result.bone_pose.patellar_tilt_deg,
+            "patellar_lift": result.bone_pose.patellar_lift,
             "overlap": [o.to_dict() for o in overlaps if o.depth > 0 or o.rest_depth > 0],
         },
         "warnings": warnings,

@@ -38,6 +38,7 @@ from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
 from kneegui.reposition.embedding import Embedding, embed_nodes
+from kneegui.reposition.patella_tracking import PatellaSeating
 from kneegui.reposition.relax import (
     ElasticRelaxation,
     RelaxOptions,
@@ -85,6 +86,10 @@ def tissue_in_bones_warnings(found: Mapping[str, Any]) -> list[str]:
         if b["nodes"]
     ]
 
+
+#: Patella and femur surface nodes closer than this to the other bone at rest (in mean condyle
+#: radii, 11 mm on the demo) are watched by the patellar seating.
+PATELLA_SEATING_BAND = 0.5
 
 #: Depth (in mean condyle radii, about 0.45 mm on the demo) beyond which a soft-tissue node counts
 #: as inside a bone in the pose report: nodes of a sliding interface lie on the surface itself.
@@ -134,6 +139,10 @@ class RepositionOptions:
         with this reach, so that the relaxation starts with the tissue outside the bones and the
         push spread smoothly through the tissue behind it (0 turns it off; ignored when
         ``contact_reach`` already applies it to every pose).
+    patella_tracking : bool
+        Lift the patella off the femur after its tables, radially from the F-E axis, by the
+        smallest distance that gives back its rest clearance
+        (:mod:`kneegui.reposition.patella_tracking`); off: the tables alone.
     push_ray_depth : (float, float) or None
         How the push chooses where a node leaves the bone, by its depth in mean condyle radii:
         shallower than the first value, at the nearest surface point (it slides on the bone);
@@ -156,6 +165,7 @@ class RepositionOptions:
     contact_clearance: float = 0.5
     relax_contact_reach: float = 0.75
     push_ray_depth: tuple[float, float] | None = (0.05, 0.3)
+    patella_tracking: bool = True
     relax: bool = True
     relax_reach: float = 5.0
     relax_region: float = 1.0
@@ -349,6 +359,11 @@ class Repositioner:
                 self._band_embedding = embed_nodes(coords, self.groups.skin, self.groups.band)
             self._end("delaunay embedding", t)
         self._surfaces: dict[str, BoneSurfaceDistance] | None = None  # built on first use
+        self._seating: PatellaSeating | None = None
+        if self.options.patella_tracking and len(self.groups.segment["patella"]):
+            t = self._stage("patella seating", 0.8)
+            self._seating = self._patella_seating()
+            self._end("patella seating", t)
         self._contact: BoneContact | None = None
         if self.options.contact_reach > 0:
             t = self._stage("bone contact", 0.85)
@@ -449,6 +464,21 @@ class Repositioner:
             }
         return self._surfaces
 
+    def _patella_seating(self) -> PatellaSeating | None:
+        """The patella's seating on the femur (None without both surfaces)."""
+        surfaces = self._bone_surfaces()
+        if "patella" not in surfaces or "femur" not in surfaces:
+            return None
+        size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        axis = self.axes.fe_axis
+        return PatellaSeating(
+            surfaces["patella"],
+            surfaces["femur"],
+            axis.point,
+            axis.direction,
+            band=PATELLA_SEATING_BAND * size,
+        )
+
     def _elastic_relaxation(self) -> ElasticRelaxation:
         model, g = self.model, self.groups
         soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
@@ -509,7 +539,8 @@ class Repositioner:
 
     # ---------------------------------------------------------------------- posing
     def bone_pose(self, flexion_deg: float) -> BonePose:
-        """Rigid bone transforms for ``flexion_deg`` (see :func:`solve_bone_pose`)."""
+        """Rigid bone transforms for ``flexion_deg`` (see :func:`solve_bone_pose`), the patella
+        seated on the femur (``options.patella_tracking``)."""
         lo, hi = FLEXION_RANGE
         if not np.isfinite(flexion_deg) or not lo <= flexion_deg <= hi:
             raise SetupError(
@@ -517,7 +548,14 @@ class Repositioner:
                 f"range {lo:g} to {hi:g} deg",
                 key="flexion",
             )
-        return solve_bone_pose(self.axes, self.setup, float(flexion_deg))
+        bone = solve_bone_pose(self.axes, self.setup, float(flexion_deg))
+        if self._seating is not None:
+            patella, lift = self._seating.seat(bone.transforms["patella"], bone.transforms["femur"])
+            if lift > 0:
+                bone = replace(
+                    bone, transforms={**bone.transforms, "patella": patella}, patellar_lift=lift
+                )
+        return bone
 
     def pose(self, flexion_deg: float) -> NDArray[np.float64]:
         """All node coordinates (N, 3) at ``flexion_deg`` (a new array); the cheap slider step

@@ -68,10 +68,24 @@ def test_overlap_present_at_rest_is_not_blamed_on_the_pose():
     assert tibia_in_femur.added_depth == 0.0
 
 
-@pytest.mark.parametrize("angle", [0.0, 30.0, 60.0, 90.0, 120.0])
+@pytest.mark.parametrize("angle", [-10.0, -5.0, 0.0, 30.0, 60.0, 90.0, 120.0])
 def test_demo_bones_keep_clear_of_each_other(small_repositioner, angle):
     """The demo's plateaus sit a cartilage gap beyond the condyle circles, so flexing about the
-    GCA never drives the tibia into the femur (it did by 3.3 mm from 60 deg before)."""
-    for overlap in small_repositioner.bone_overlap(angle):
-        if overlap.inner in ("tibia", "femur") and overlap.outer in ("tibia", "femur"):
-            assert overlap.depth == 0.0, overlap.describe()
+    GCA never drives the tibia into the femur (it did by 3.3 mm from 60 deg before); the
+    patella, turned by its tables, is lifted off the trochlea to its rest clearance (it rode
+    3.5 mm into the femur at -5 deg and 0.6 mm at 30 deg before)."""
+    bone = small_repositioner.bone_pose(angle)
+    for overlap in small_repositioner.bone_overlap(bone):
+        assert overlap.depth == 0.0, overlap.describe()
+    if angle < 60.0:
+        assert bone.patellar_lift > 0.0
+
+
+def test_without_patellar_tracking_the_demo_patella_rides_into_the_femur(small_leg, small_setup):
+    from kneegui.reposition import Repositioner, RepositionOptions
+
+    rep = Repositioner(small_leg.model, small_setup, RepositionOptions(patella_tracking=False))
+    bone = rep.bone_pose(-5.0)
+    assert bone.patellar_lift == 0.0
+    depth = {(o.inner, o.outer): o.depth for o in rep.bone_overlap(bone)}
+    assert depth["patella", "femur"] > 1.0

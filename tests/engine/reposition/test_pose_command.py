@@ -115,18 +115,19 @@ def test_several_angles_one_deck_each_and_gate_exit_code(demo_files, tmp_path):
 
 
 def test_bones_reaching_into_each_other_are_reported_and_warned_about(demo_files, tmp_path):
-    """Hyperextended to -5 deg, the demo's patella (0.65 x the knee's flexion about the F-E
-    axis) rides up into the anterior femur: the report says how deep, the CLI warns."""
+    """Flexed to 140 deg, beyond what the demo is built for, the back of its tibia reaches
+    into the posterior femur above the condyle arcs: the report says how deep, the CLI
+    warns."""
     deck, setup = demo_files
     out, report = tmp_path / "leg.k", tmp_path / "leg.json"
-    argv = ["pose", str(deck), "--setup", str(setup), "--flexion", "-5", "--out", str(out)]
+    argv = ["pose", str(deck), "--setup", str(setup), "--flexion", "140", "--out", str(out)]
     result = kneegui(*argv, "--report", str(report), "--force", "--no-smooth", cwd=tmp_path)
     data = json.loads(report.read_text())
     overlaps = {(o["inner"], o["outer"]): o for o in data["bones"]["overlap"]}
-    patella = overlaps["patella", "femur"]
-    assert patella["depth"] > 1.0 and patella["nodes"] > 0 and patella["rest_depth"] == 0.0
-    assert any("the patella reaches" in w and "into the femur" in w for w in data["warnings"])
-    assert "kneegui: warning: -5 deg: the patella reaches" in result.stderr
+    tibia = overlaps["tibia", "femur"]
+    assert tibia["depth"] > 1.0 and tibia["nodes"] > 0 and tibia["rest_depth"] == 0.0
+    assert any("the tibia reaches" in w and "into the femur" in w for w in data["warnings"])
+    assert "kneegui: warning: 140 deg: the tibia reaches" in result.stderr
 
 
 @pytest.mark.parametrize(
