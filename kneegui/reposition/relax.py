@@ -768,9 +768,54 @@ class ElasticRelaxation:
             penetrating = self.contact_nodes[depth < -1e-3]
         free = self.degraded_region(x, penetrating)
         report.free_nodes = len(free)
-        if len(free) == 0:
-            report.seconds = time.perf_counter() - t0
-            return x, report
+        optimise_next = opt.optimise_quality and self.blocks is not None and self.aims is not None
+        d_min = np.inf  # nothing tangled
+        if len(free):
+            x, d_min = self._minimise_energy(
+                x,
+                free,
+                transforms,
+                use_contact,
+                optimise_next,
+                report,
+                report_progress,
+                should_cancel,
+            )
+        if optimise_next and d_min > 0:
+            x = self._optimise_quality(
+                x,
+                transforms if use_contact else None,
+                report,
+                lambda fraction, message: report_progress(0.8 + 0.1 * fraction, message),
+                cancel,
+            )
+        if opt.polish and self.blocks is not None and len(free):
+            x = self._polish(
+                x,
+                free,
+                transforms if use_contact else None,
+                report,
+                lambda fraction, message: report_progress(0.9 + 0.1 * fraction, message),
+                cancel,
+            )
+        report.seconds = time.perf_counter() - t0
+        return x, report
+
+    def _minimise_energy(
+        self,
+        x: NDArray[np.float64],
+        free: NDArray[np.int64],
+        transforms: Mapping[str, RigidTransform] | None,
+        use_contact: bool,
+        optimise_next: bool,
+        report: RelaxReport,
+        report_progress: ProgressCallback,
+        should_cancel: Callable[[], bool],
+    ) -> tuple[NDArray[np.float64], float]:
+        """The energy's rounds (and restarts) over the region ``free``, ending as soon as
+        nothing is inverted when the quality optimisation follows (``optimise_next``); fills
+        ``report``. Returns the new coordinates and the smallest corner det J."""
+        opt = self.options
         rows = np.unique(self._node_rows[free].indices)
         sub = _Subproblem(self, rows, free)
         xl = x[sub.nodes]
@@ -826,7 +871,6 @@ class ElasticRelaxation:
 
             return fun
 
-        optimise_next = opt.optimise_quality and self.blocks is not None and self.aims is not None
         for attempt in range(1 + opt.restarts):
             if attempt:
                 if d_min > 0:
@@ -889,25 +933,7 @@ class ElasticRelaxation:
         x[sub.nodes] = xl
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
-        if optimise_next and d_min > 0:
-            x = self._optimise_quality(
-                x,
-                transforms if use_contact else None,
-                report,
-                lambda fraction, message: report_progress(0.8 + 0.1 * fraction, message),
-                cancel,
-            )
-        if opt.polish and self.blocks is not None:
-            x = self._polish(
-                x,
-                free,
-                transforms if use_contact else None,
-                report,
-                lambda fraction, message: report_progress(0.9 + 0.1 * fraction, message),
-                cancel,
-            )
-        report.seconds = time.perf_counter() - t0
-        return x, report
+        return x, d_min
 
     @staticmethod
     def _stuck_nodes(sub: _Subproblem, det: NDArray[np.float64]) -> NDArray[np.int64]:

@@ -34,11 +34,6 @@ CROSSING_GAP = (
     "with the tissue under them, so neighbouring contours cross there (small demo, relaxed pose: "
     "6, 19 and 43 skin nodes beyond the neighbouring contour's plane at 60, 90 and 120 deg)"
 )
-PENETRATION_GAP = (
-    "at 30 deg the small demo's patella, turned with 0.65 of the knee's flexion about the F-E "
-    "axis, reaches 0.6 mm into the femur (the bone-overlap check reports it) and pinches the "
-    "tissue between them: 1 node stays deeper than 0.5 mm inside the femur"
-)
 
 
 def test_initial_flexion_returns_the_initial_model(small_leg, small_repositioner):
@@ -83,7 +78,9 @@ def test_no_inverted_elements(small_leg, small_posed, angle):
     result = small_posed(angle)
     q = compute_quality(result.coords, small_leg.model.blocks)
     assert q.n_inverted == 0, result.relaxation
-    assert result.relaxation.min_det_after > 0
+    # the energy runs only where the mapping degraded corners (none at 0 deg on the small demo,
+    # where only the quality optimisation has work to do)
+    assert result.relaxation.corners == 0 or result.relaxation.min_det_after > 0
 
 
 def test_deep_flexion_is_untangled_by_restarting(small_repositioner, small_leg):
@@ -126,7 +123,7 @@ def test_relaxation_leaves_the_initial_pose_alone(small_leg, small_repositioner)
     assert result.relaxation.free_nodes == 0
 
 
-@pytest.mark.parametrize("angle", [9.0, known_gap(30.0, PENETRATION_GAP), 90.0, 120.0])
+@pytest.mark.parametrize("angle", [9.0, 30.0, 90.0, 120.0])
 def test_soft_tissue_inside_skin_and_outside_bones(
     small_leg, small_setup, small_repositioner, small_posed, angle
 ):
