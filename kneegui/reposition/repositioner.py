@@ -329,16 +329,7 @@ class Repositioner:
                     key="roles.skin",
                 )
             t = self._stage("skin contours", 0.2)
-            self.contours = build_skin_contours(
-                coords,
-                self.groups.skin,
-                self.axes.knee_center,
-                self.axes.superior,
-                self.axes.tibia_axis.direction,
-                setup.skin_contours,
-                self.options.zone_factor,
-                self.groups.bone_surface,
-            )
+            self.contours = self._build_contours()
             self._end("skin contours", t)
         if method in ("blend", "hybrid"):
             t = self._stage("harmonic weights", 0.4)
@@ -464,6 +455,19 @@ class Repositioner:
             }
         return self._surfaces
 
+    def _build_contours(self) -> SkinContours:
+        """The skin's contours in the initial pose (ALGORITHM.md §3)."""
+        return build_skin_contours(
+            self.model.coords,
+            self.groups.skin,
+            self.axes.knee_center,
+            self.axes.superior,
+            self.axes.tibia_axis.direction,
+            self.setup.skin_contours,
+            self.options.zone_factor,
+            self.groups.bone_surface,
+        )
+
     def _patella_seating(self) -> PatellaSeating | None:
         """The patella's seating on the femur (None without both surfaces)."""
         surfaces = self._bone_surfaces()
@@ -492,6 +496,9 @@ class Repositioner:
         options = self.options.relaxation
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
+        contours = self.contours
+        if contours is None and options.contour_margin is not None and len(g.skin) >= 4:
+            contours = self._build_contours()
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
@@ -506,6 +513,7 @@ class Repositioner:
             blocks=model.blocks,
             goals=smoothing_goals(initial),
             aims=quality_aims(initial, model.blocks),
+            skin_contours=contours,
         )
 
     def _soft_near_joint(self) -> NDArray[np.int64]:

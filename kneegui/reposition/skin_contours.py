@@ -303,10 +303,34 @@ def count_contour_crossings(
     return int(np.count_nonzero(_beyond_plane(contours, coords, tolerance)))
 
 
-def _beyond_plane(
-    contours: SkinContours, coords: NDArray[np.float64], tolerance: float
-) -> NDArray[np.bool_]:
-    """Per contour node: lies beyond the plane of the neighbouring contour nearer the joint."""
+def _contour_pairs(contours: SkinContours) -> list[tuple[int, int]]:
+    """(a, b) for each contour b and its neighbour a nearer the joint on the same side, and the
+    first thigh contour with the first calf contour."""
+    order = {k: np.flatnonzero(contours.contour_side == k) for k in (0, 1)}
+    for k in (0, 1):
+        order[k] = order[k][np.argsort(contours.contour_rank[order[k]])]
+    pairs = [(a, b) for k in (0, 1) for a, b in zip(order[k][:-1], order[k][1:], strict=True)]
+    if len(order[0]) and len(order[1]):
+        pairs.append((order[0][0], order[1][0]))
+    return pairs
+
+
+def neighbour_planes(
+    contours: SkinContours, coords: NDArray[np.float64]
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """For every contour node that has a neighbouring contour nearer the joint: that contour's
+    plane at ``coords`` (centroid and least-squares normal of its nodes), oriented away from it
+    towards the node's contour.
+
+    Returns
+    -------
+    rows : (M,) ndarray of int
+        Rows of ``contours.nodes``.
+    normals : (M, 3) ndarray
+        Unit normals; the node is on the right side when ``normal . (x - point) >= 0``.
+    offsets : (M,) ndarray
+        ``normal . point`` for a point of the plane.
+    """
     x = coords[contours.nodes]
     n_c = contours.n_contours
     centers = np.zeros((n_c, 3))
@@ -314,21 +338,77 @@ def _beyond_plane(
     for j in range(3):
         centers[:, j] = np.bincount(contours.contour, weights=x[:, j], minlength=n_c)
     centers /= np.maximum(counts, 1)[:, None]
-    # order contours along each side from the joint outwards
-    order = {k: np.flatnonzero(contours.contour_side == k) for k in (0, 1)}
-    for k in (0, 1):
-        order[k] = order[k][np.argsort(contours.contour_rank[order[k]])]
     normals = np.zeros((n_c, 3))
     for c in range(n_c):
         pts = x[contours.contour == c] - centers[c]
         if len(pts) >= 3:
             normals[c] = np.linalg.svd(pts, full_matrices=False)[2][-1]
-    beyond = np.zeros(len(x), dtype=bool)
-    pairs = [(a, b) for k in (0, 1) for a, b in zip(order[k][:-1], order[k][1:], strict=True)]
-    if len(order[0]) and len(order[1]):
-        pairs.append((order[0][0], order[1][0]))
-    for a, b in pairs:
+    rows, out_n, out_o = [], [], []
+    for a, b in _contour_pairs(contours):
         n = normals[a] * np.sign(normals[a] @ (centers[b] - centers[a]) or 1.0)
-        sel = contours.contour == b
-        beyond[sel] |= (x[sel] - centers[a]) @ n < -tolerance
+        sel = np.flatnonzero(contours.contour == b)
+        rows.append(sel)
+        out_n.append(np.broadcast_to(n, (len(sel), 3)))
+        out_o.append(np.full(len(sel), n @ centers[a]))
+    if not rows:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+    return np.concatenate(rows), np.concatenate(out_n), np.concatenate(out_o)
+
+
+def _beyond_plane(
+    contours: SkinContours, coords: NDArray[np.float64], tolerance: float
+) -> NDArray[np.bool_]:
+    """Per contour node: lies beyond the plane of the neighbouring contour nearer the joint."""
+    rows, normals, offsets = neighbour_planes(contours, coords)
+    beyond = np.zeros(len(contours.nodes), dtype=bool)
+    x = coords[contours.nodes[rows]]
+    beyond[rows] = np.einsum("ij,ij->i", normals, x) - offsets < -tolerance
     return beyond
+
+
+class ContourOrder:
+    """Keeps every skin contour on its side of the neighbouring contour nearer the joint.
+
+    As half-space constraints for :func:`kneegui.smoothing.quality_optimiser.optimise_quality`:
+    each contour node must lie at least ``margin`` beyond the plane of its neighbour (or as far
+    as it lay in the initial pose, if that was less; a node already beyond it at rest is left
+    alone), the planes refitted to the current coordinates whenever the constraints are asked
+    for.
+
+    Parameters
+    ----------
+    contours : SkinContours
+    rest_coords : (N, 3) ndarray
+        The initial coordinates.
+    margin : float
+        Clearance asked beyond the neighbour's plane (model units).
+    """
+
+    def __init__(
+        self, contours: SkinContours, rest_coords: NDArray[np.float64], margin: float
+    ) -> None:
+        self.contours = contours
+        rows, normals, offsets = neighbour_planes(contours, rest_coords)
+        rest = np.einsum("ij,ij->i", normals, rest_coords[contours.nodes[rows]]) - offsets
+        keep = rest >= 0.0
+        self._rows = rows[keep]
+        self._clearance = np.minimum(rest[keep], margin)
+
+    def constraints(
+        self, coords: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """``(nodes, normals, offsets)``: node ``k`` should satisfy ``normal . x >= offset``."""
+        rows, normals, offsets = neighbour_planes(self.contours, coords)
+        slot = np.full(len(self.contours.nodes), -1)
+        slot[rows] = np.arange(len(rows))
+        at = slot[self._rows]
+        return (
+            self.contours.nodes[self._rows],
+            normals[at],
+            offsets[at] + self._clearance,
+        )
+
+    def crossing(self, coords: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Contour nodes that do not keep their clearance (node indices)."""
+        nodes, normals, offsets = self.constraints(coords)
+        return nodes[np.einsum("ij,ij->i", normals, coords[nodes]) < offsets]

@@ -130,8 +130,10 @@ def shortfall_region(
     aims: QualityAims,
     candidates: NDArray[np.int64],
     rings: int = 2,
+    seeds: NDArray[np.int64] | None = None,
 ) -> NDArray[np.int64]:
-    """Candidate nodes within ``rings`` elements of an element that misses one of its aims.
+    """Candidate nodes within ``rings`` elements of an element that misses one of its aims (or
+    of one of ``seeds``).
 
     Parameters
     ----------
@@ -142,6 +144,8 @@ def shortfall_region(
         Nodes that may move; only elements touching them are measured.
     rings : int
         Element layers the region grows by around the elements that miss an aim.
+    seeds : (S,) ndarray of int, optional
+        More nodes to grow the region from (e.g. nodes that break a constraint).
 
     Returns
     -------
@@ -152,6 +156,8 @@ def shortfall_region(
     allowed = np.zeros(n, dtype=bool)
     allowed[candidates] = True
     region = np.zeros(n, dtype=bool)
+    if seeds is not None:
+        region[seeds] = True
     conns = {}
     for etype in OPTIMISED_TYPES:
         block = blocks.get(etype)

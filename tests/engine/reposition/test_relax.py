@@ -174,6 +174,7 @@ def test_polish_lifts_the_worst_element_the_energy_leaves():
         "iterations_per_round": 1,
         "seed_shape": 1.05,
         "optimise_quality": False,
+        "polish": True,
     }
     plain, plain_report = relaxation(coords, blocks, free, **short).relax(sheared)
     rx = relaxation(coords, blocks, free, **short)
