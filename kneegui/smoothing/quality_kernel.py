@@ -213,7 +213,7 @@ def _cross_grad(x, grad, base, iu, iv, gx, gy, gz, s):  # pragma: no cover - com
     grad[base, 2] -= auz + avz
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _normal(x, base, iu, iv):  # pragma: no cover - compiled
     ux = x[iu, 0] - x[base, 0]
     uy = x[iu, 1] - x[base, 1]
@@ -224,7 +224,7 @@ def _normal(x, base, iu, iv):  # pragma: no cover - compiled
     return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _angle_gradients(ax, ay, az, bx, by, bz):  # pragma: no cover - compiled
     """Angle theta in [0, pi] between vectors a and b, and d theta / d a, d theta / d b.
 
@@ -258,19 +258,24 @@ def _angle_gradients(ax, ay, az, bx, by, bz):  # pragma: no cover - compiled
     )
 
 
-@njit(cache=True, nogil=True)
-def _fold_penalty(x, grad, t1, t2, aim, weight):  # pragma: no cover - compiled
+@njit(cache=True, nogil=True, inline="always")
+def _fold_penalty(x, grad, a0, a1, a2, b0, b1, b2, aim, cos_aim, weight):  # pragma: no cover
     """``weight * max(0, theta - aim)^2``, theta the angle (radians) between the normals of
-    triangles t1 and t2 (each ``(base, u, v)``); adds its gradient, returns the penalty."""
-    ax, ay, az = _normal(x, t1[0], t1[1], t1[2])
-    bx, by, bz = _normal(x, t2[0], t2[1], t2[2])
+    triangles (a0, a1, a2) and (b0, b1, b2) (base first); adds its gradient, returns the
+    penalty."""
+    ax, ay, az = _normal(x, a0, a1, a2)
+    bx, by, bz = _normal(x, b0, b1, b2)
+    # cheap test first: most faces are flatter than their aim
+    norms = math.sqrt((ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz))
+    if norms == 0.0 or ax * bx + ay * by + az * bz >= cos_aim * norms:
+        return 0.0
     theta, gax, gay, gaz, gbx, gby, gbz = _angle_gradients(ax, ay, az, bx, by, bz)
     excess = theta - aim
     if excess <= 0.0:
         return 0.0
     s = 2.0 * weight * excess
-    _cross_grad(x, grad, t1[0], t1[1], t1[2], gax, gay, gaz, s)
-    _cross_grad(x, grad, t2[0], t2[1], t2[2], gbx, gby, gbz, s)
+    _cross_grad(x, grad, a0, a1, a2, gax, gay, gaz, s)
+    _cross_grad(x, grad, b0, b1, b2, gbx, gby, gbz, s)
     return weight * excess * excess
 
 
@@ -285,50 +290,54 @@ def face_shape_penalty(  # pragma: no cover - compiled
     ``max(0, log(l_i / l_j) - log aim)^2`` over the face's edge pairs; warpage:
     ``max(0, theta - aim)^2`` for the angle between the triangle normals of both diagonal
     splits; skew: ``max(0, |theta - pi/2| - aim)^2`` for the angle between the mid-side lines.
+    Each term is first tested cheaply (squared lengths, cosines): the logarithms, angles and
+    gradients are only worked out for the faces that miss an aim.
     """
     total = 0.0
-    tri = np.empty(3, dtype=np.int64)
-    tri2 = np.empty(3, dtype=np.int64)
-    logl = np.empty(4)
+    sq = np.empty(4)
     g_log = np.empty(4)
     w_aspect, w_warp, w_skew = weights[0], weights[1], weights[2]
     for f in range(faces.shape[0]):
         k = 4 if faces[f, 3] >= 0 else 3
-        # aspect: squared edge lengths
+        lo = math.inf
+        hi = 0.0
         for i in range(k):
             a = faces[f, i]
             b = faces[f, (i + 1) % k]
             dx = x[b, 0] - x[a, 0]
             dy = x[b, 1] - x[a, 1]
             dz = x[b, 2] - x[a, 2]
-            sq = dx * dx + dy * dy + dz * dz
-            if not sq > 0.0:
+            sq[i] = dx * dx + dy * dy + dz * dz
+            if not sq[i] > 0.0:
                 return math.inf
-            logl[i] = 0.5 * math.log(sq)
-            g_log[i] = 0.0
+            lo = min(lo, sq[i])
+            hi = max(hi, sq[i])
         aim = log_aspect_aim[f]
-        for i in range(k):
-            for j in range(k):
-                u = logl[i] - logl[j] - aim
-                if i != j and u > 0.0:
-                    total += w_aspect * u * u
-                    g_log[i] += 2.0 * w_aspect * u
-                    g_log[j] -= 2.0 * w_aspect * u
-        for i in range(k):
-            if g_log[i] == 0.0:
-                continue
-            a = faces[f, i]
-            b = faces[f, (i + 1) % k]
-            dx = x[b, 0] - x[a, 0]
-            dy = x[b, 1] - x[a, 1]
-            dz = x[b, 2] - x[a, 2]
-            s = g_log[i] / (dx * dx + dy * dy + dz * dz)  # d(0.5 log sq) = d sq / (2 sq)
-            grad[b, 0] += s * dx
-            grad[b, 1] += s * dy
-            grad[b, 2] += s * dz
-            grad[a, 0] -= s * dx
-            grad[a, 1] -= s * dy
-            grad[a, 2] -= s * dz
+        if w_aspect > 0.0 and 0.5 * math.log(hi / lo) > aim:
+            for i in range(k):
+                g_log[i] = 0.0
+            for i in range(k):
+                for j in range(k):
+                    u = 0.5 * (math.log(sq[i]) - math.log(sq[j])) - aim
+                    if i != j and u > 0.0:
+                        total += w_aspect * u * u
+                        g_log[i] += 2.0 * w_aspect * u
+                        g_log[j] -= 2.0 * w_aspect * u
+            for i in range(k):
+                if g_log[i] == 0.0:
+                    continue
+                a = faces[f, i]
+                b = faces[f, (i + 1) % k]
+                dx = x[b, 0] - x[a, 0]
+                dy = x[b, 1] - x[a, 1]
+                dz = x[b, 2] - x[a, 2]
+                s = g_log[i] / sq[i]  # d(0.5 log sq) = d sq / (2 sq)
+                grad[b, 0] += s * dx
+                grad[b, 1] += s * dy
+                grad[b, 2] += s * dz
+                grad[a, 0] -= s * dx
+                grad[a, 1] -= s * dy
+                grad[a, 2] -= s * dz
         if k == 3:
             continue
         p0 = faces[f, 0]
@@ -337,12 +346,10 @@ def face_shape_penalty(  # pragma: no cover - compiled
         p3 = faces[f, 3]
         if w_warp > 0.0:
             # split along 0-2: (0, 1, 2) and (0, 2, 3); along 1-3: (0, 1, 3) and (1, 2, 3)
-            tri[0], tri[1], tri[2] = p0, p1, p2
-            tri2[0], tri2[1], tri2[2] = p0, p2, p3
-            total += _fold_penalty(x, grad, tri, tri2, warp_aim[f], w_warp)
-            tri[0], tri[1], tri[2] = p0, p1, p3
-            tri2[0], tri2[1], tri2[2] = p1, p2, p3
-            total += _fold_penalty(x, grad, tri, tri2, warp_aim[f], w_warp)
+            aim = warp_aim[f]
+            cos_aim = math.cos(aim)
+            total += _fold_penalty(x, grad, p0, p1, p2, p0, p2, p3, aim, cos_aim, w_warp)
+            total += _fold_penalty(x, grad, p0, p1, p3, p1, p2, p3, aim, cos_aim, w_warp)
         if w_skew > 0.0:
             # X1 = (p1 - p0) - (p3 - p2), X2 = (p2 - p1) - (p0 - p3)
             ax = x[p1, 0] - x[p0, 0] - x[p3, 0] + x[p2, 0]
@@ -351,6 +358,10 @@ def face_shape_penalty(  # pragma: no cover - compiled
             bx = x[p2, 0] - x[p1, 0] - x[p0, 0] + x[p3, 0]
             by = x[p2, 1] - x[p1, 1] - x[p0, 1] + x[p3, 1]
             bz = x[p2, 2] - x[p1, 2] - x[p0, 2] + x[p3, 2]
+            # cheap test first: |cos| of the angle between the lines against sin(aim)
+            norms = math.sqrt((ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz))
+            if norms == 0.0 or abs(ax * bx + ay * by + az * bz) <= math.sin(skew_aim[f]) * norms:
+                continue
             theta, gax, gay, gaz, gbx, gby, gbz = _angle_gradients(ax, ay, az, bx, by, bz)
             half = 0.5 * math.pi
             excess = abs(theta - half) - skew_aim[f]
