@@ -253,6 +253,12 @@ class RelaxOptions:
         blocks and aims, see :class:`ElasticRelaxation`).
     quality : QualityOptions
         Parameters of that optimisation.
+    volume_change : float or None
+        In that optimisation, every soft solid element aims to keep its volume within
+        ``1 + volume_change`` times its initial volume, either way (None: no limit). Without
+        it the optimiser may shrink an element whose proportions stay good: the demo's PCL
+        elements at 90 deg ended at 0.1 % of their volume, and the largest growth was 725 %
+        (with 0.5: 71 %, see docs/repositioning.md).
     contour_margin : float or None
         In that optimisation, every skin contour keeps at least this far (model units) beyond
         the plane of its neighbour nearer the joint, so that no contour crosses another (needs
@@ -300,9 +306,10 @@ class RelaxOptions:
     optimise_quality: bool = True
     quality: QualityOptions = field(
         default_factory=lambda: QualityOptions(
-            rounds=15, iterations_per_round=150, constraint_stiffness=100.0
+            rounds=15, iterations_per_round=150, constraint_stiffness=100.0, volume_weight=10.0
         )
     )
+    volume_change: float | None = 0.5
     contour_margin: float | None = 0.5
     polish: bool = False
     restarts: int = 2

@@ -512,7 +512,12 @@ class Repositioner:
             sliding=g.skin,
             blocks=model.blocks,
             goals=smoothing_goals(initial),
-            aims=quality_aims(initial, model.blocks),
+            aims=quality_aims(
+                initial,
+                model.blocks,
+                rest_coords=model.coords,
+                volume_change=options.volume_change,
+            ),
             skin_contours=contours,
         )
 

@@ -13,10 +13,23 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def corner_ratio_penalty(
-    x, corners, elem_ptr, log_aim, quads, quad_triples, quad_log_aim, grad
-):  # pragma: no cover - compiled
-    """Sum over elements of ``max(0, log aim - log d_i + log d_j)^2`` over corner pairs.
+def corner_ratio_penalty(  # pragma: no cover - compiled
+    x,
+    corners,
+    elem_ptr,
+    log_aim,
+    log_volume,
+    volume_band,
+    volume_weight,
+    quads,
+    quad_triples,
+    quad_log_aim,
+    grad,
+):
+    """Sum over elements of ``max(0, log aim - log d_i + log d_j)^2`` over corner pairs, plus
+    ``volume_weight * max(0, |log(v / v0)| - band)^2`` for the element's volume ``v`` (the mean
+    of its corner determinants; ``log_volume`` = ``log v0`` (E,), ``volume_band`` (E,), ``inf``
+    for none).
 
     ``x`` (S, 3) coordinates; ``corners`` (C, 4) local node indices (corner node, then the
     three edge ends) of the solids, grouped by element through ``elem_ptr`` (E + 1,);
@@ -58,10 +71,23 @@ def corner_ratio_penalty(
                     total += u * u
                     g_log[i] -= 2.0 * u
                     g_log[j] += 2.0 * u
+        g_volume = 0.0
+        if volume_band[e] < math.inf:
+            mean = 0.0
+            for i in range(k):
+                mean += dets[i]
+            mean /= k
+            change = math.log(mean) - log_volume[e]
+            excess = abs(change) - volume_band[e]
+            if excess > 0.0:
+                total += volume_weight * excess * excess
+                # d/d d_i of log(mean) = 1 / (k mean)
+                sign = 1.0 if change > 0.0 else -1.0
+                g_volume = 2.0 * volume_weight * excess * sign / (k * mean)
         for i in range(k):
-            if g_log[i] == 0.0:
+            if g_log[i] == 0.0 and g_volume == 0.0:
                 continue
-            s = g_log[i] / dets[i]
+            s = g_log[i] / dets[i] + g_volume
             c = corners[p0 + i]
             ax = x[c[1], 0] - x[c[0], 0]
             ay = x[c[1], 1] - x[c[0], 1]

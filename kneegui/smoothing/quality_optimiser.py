@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -71,12 +71,16 @@ _FACES = {
 @dataclass(frozen=True)
 class QualityAims:
     """Per element of each block (arrays aligned with the block's rows): the corner Jacobian to
-    reach, and the aspect ratio, warpage and skew (degrees) not to exceed."""
+    reach, and the aspect ratio, warpage and skew (degrees) not to exceed; for solids, the
+    reference volume (the mean of the corner determinants at rest) and the relative volume
+    change allowed either way, ``1 + volume_change`` (``inf``, or no reference: no limit)."""
 
     jacobian: Mapping[str, NDArray[np.float64]]
     aspect: Mapping[str, NDArray[np.float64]]
     warpage: Mapping[str, NDArray[np.float64]]
     skew: Mapping[str, NDArray[np.float64]]
+    volume: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
+    volume_change: float = np.inf
 
 
 def quality_aims(
@@ -84,6 +88,8 @@ def quality_aims(
     blocks: Mapping[str, ElementBlock],
     thresholds: Thresholds | None = None,
     jacobian_cap: float | None = None,
+    rest_coords: NDArray[np.float64] | None = None,
+    volume_change: float | None = None,
 ) -> QualityAims:
     """Aims that keep every element at least as good as in the initial model, or within the
     warn threshold where that asks less.
@@ -98,6 +104,11 @@ def quality_aims(
         Default: ``resources/quality_thresholds.csv``; its default (``*``) warn levels are used.
     jacobian_cap : float, optional
         Highest corner Jacobian asked of any element (default: the warn level, 0.6).
+    rest_coords : (N, 3) ndarray, optional
+        The initial coordinates, for the solids' reference volumes.
+    volume_change : float, optional
+        Relative volume change allowed per solid element either way (0.5: between 1/1.5 and
+        1.5 times its initial volume); with ``rest_coords``.
 
     Returns
     -------
@@ -106,7 +117,9 @@ def quality_aims(
     """
     levels = (thresholds or load_thresholds()).for_role(None)
     cap = levels["jacobian"].warn if jacobian_cap is None else float(jacobian_cap)
-    out: dict[str, dict[str, NDArray[np.float64]]] = {m: {} for m in QualityAims.__annotations__}
+    out: dict[str, dict[str, NDArray[np.float64]]] = {
+        m: {} for m in ("jacobian", "aspect", "warpage", "skew")
+    }
     for etype in OPTIMISED_TYPES:
         if etype not in initial or etype not in blocks:
             continue
@@ -121,7 +134,20 @@ def quality_aims(
             values = np.full(n, level, dtype=np.float64)
             values[q.rows] = combine(np.nan_to_num(source, nan=level, posinf=1e6), level)
             out[metric][etype] = values
-    return QualityAims(**out)
+    volume: dict[str, NDArray[np.float64]] = {}
+    if rest_coords is not None and volume_change is not None:
+        for etype in SOLID_CORNER_TYPES:
+            if etype in blocks and len(blocks[etype]):
+                triples = np.array(CORNER_TRIPLES[etype], dtype=np.int64)
+                corners = blocks[etype].conn[:, : CORNER_NODES[etype]][:, triples]
+                p = rest_coords[corners]  # (m, k, 4, 3)
+                a, b, c = (p[:, :, j] - p[:, :, 0] for j in (1, 2, 3))
+                volume[etype] = np.einsum("mkj,mkj->mk", np.cross(a, b), c).mean(axis=1)
+    return QualityAims(
+        **out,
+        volume=volume,
+        volume_change=np.inf if volume_change is None else float(volume_change),
+    )
 
 
 def shortfall_region(
@@ -174,6 +200,14 @@ def shortfall_region(
             limit = getattr(aims, metric).get(etype)
             if limit is not None:
                 miss |= q.metric(metric) > limit[rows]
+        reference = aims.volume.get(etype)
+        if reference is not None and np.isfinite(aims.volume_change):
+            triples = np.array(CORNER_TRIPLES[etype], dtype=np.int64)
+            p = coords[conn[rows][:, triples]]
+            a, b, c = (p[:, :, j] - p[:, :, 0] for j in (1, 2, 3))
+            ratio = np.einsum("mkj,mkj->mk", np.cross(a, b), c).mean(axis=1) / reference[rows]
+            band = 1.0 + aims.volume_change
+            miss |= (ratio > band) | (ratio < 1.0 / band)
         region[conn[rows[miss]]] = True
     for _ in range(rings):
         grown = region.copy()
@@ -194,6 +228,8 @@ class QualityOptions:
         settles a little below its aim where something pulls against it).
     weights : (float, float, float)
         Weights of the aspect, warpage and skew penalties against the Jacobian's.
+    volume_weight : float
+        Weight of the volume penalty (where the aims limit the volume change).
     anchor : float
         Weight of ``|x - x_start|^2 / h^2`` per free node (``h`` its mean edge length at the
         start).
@@ -212,6 +248,7 @@ class QualityOptions:
 
     margin: float = 0.03
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    volume_weight: float = 1.0
     anchor: float = 1e-4
     rounds: int = 6
     iterations_per_round: int = 400
@@ -264,6 +301,9 @@ class _Problem:
     corners: NDArray[np.int64]  # (C, 4) solid corners, grouped by element
     elem_ptr: NDArray[np.int64]  # (E + 1,)
     log_aim: NDArray[np.float64]  # (E,)
+    log_volume: NDArray[np.float64]  # (E,) log of the reference volume
+    volume_band: NDArray[np.float64]  # (E,) allowed |log(v / v0)|, inf for none
+    volume_weight: float
     jacobian_aim: NDArray[np.float64]  # (E + Q,) solids then quads, without the margin
     quads: NDArray[np.int64]  # (Q, 4)
     quad_log_aim: NDArray[np.float64]
@@ -283,7 +323,7 @@ def _build_problem(
 ) -> _Problem:
     is_free = np.zeros(n_nodes, dtype=bool)
     is_free[free] = True
-    corners, counts, jac_solid, quads, jac_quad = [], [], [], [], []
+    corners, counts, jac_solid, quads, jac_quad, ref_volume = [], [], [], [], [], []
     faces, f_aspect, f_warp, f_skew = [], [], [], []
     for etype in OPTIMISED_TYPES:
         block = blocks.get(etype)
@@ -307,6 +347,8 @@ def _build_problem(
             corners.append(conn[rows][:, triples].reshape(-1, 4))
             counts.append(np.full(len(rows), len(triples)))
             jac_solid.append(jac)
+            ref = aims.volume.get(etype)
+            ref_volume.append(np.full(len(rows), np.nan) if ref is None else ref[rows])
         local = _FACES[etype]
         f = np.where(local >= 0, conn[rows][:, np.maximum(local, 0)], -1)  # (m, faces, 4)
         faces.append(f.reshape(-1, 4))
@@ -333,6 +375,9 @@ def _build_problem(
             return np.log(np.clip(goal + options.margin, 0.0, 1.0) * (goal > 0))
 
     jac_s, jac_q = cat(jac_solid), cat(jac_quad)
+    ref = cat(ref_volume)
+    limited = (ref > 0) & np.isfinite(aims.volume_change)
+    band = np.where(limited, np.log1p(aims.volume_change) if limited.any() else 0.0, np.inf)
     # a face shared by two elements is measured once, against the stricter of their aims
     # (aspect, warpage and skew do not depend on the face's orientation)
     _, first, group = np.unique(
@@ -355,6 +400,9 @@ def _build_problem(
         corners=local(corners_g),
         elem_ptr=np.concatenate([[0], np.cumsum(cat(counts, dtype=np.int64))]).astype(np.int64),
         log_aim=log_aim(jac_s),
+        log_volume=np.log(np.where(limited, ref, 1.0)),
+        volume_band=band,
+        volume_weight=float(options.volume_weight),
         jacobian_aim=np.concatenate([jac_s, jac_q]),
         quads=local(quads_g),
         quad_log_aim=log_aim(jac_q),
@@ -392,6 +440,9 @@ def corner_ratio_penalty_numpy(
     corners: NDArray[np.int64],
     elem_ptr: NDArray[np.int64],
     log_aim: NDArray[np.float64],
+    log_volume: NDArray[np.float64],
+    volume_band: NDArray[np.float64],
+    volume_weight: float,
     quads: NDArray[np.int64],
     quad_log_aim: NDArray[np.float64],
 ) -> tuple[float, NDArray[np.float64]]:
@@ -415,7 +466,13 @@ def corner_ratio_penalty_numpy(
         u[:, np.arange(k), np.arange(k)] = 0.0
         pos = np.maximum(u, 0.0)
         total += float(np.sum(pos * pos))
-        s = ((-2.0 * pos.sum(axis=2) + 2.0 * pos.sum(axis=1)).ravel() / d)[:, None]
+        s = (-2.0 * pos.sum(axis=2) + 2.0 * pos.sum(axis=1)).ravel() / d
+        mean = d.reshape(-1, k).mean(axis=1)
+        change = np.log(mean) - log_volume[elems]
+        excess = np.maximum(np.abs(change) - volume_band[elems], 0.0)
+        total += volume_weight * float(np.sum(excess * excess))
+        s = s + np.repeat(2.0 * volume_weight * excess * np.sign(change) / (k * mean), k)
+        s = s[:, None]
         ga, gb, ge = s * np.cross(b, e), s * np.cross(e, a), s * np.cross(a, b)
         for col, g in ((1, ga), (2, gb), (3, ge), (0, -(ga + gb + ge))):
             np.add.at(grad, c[:, col], g)
@@ -451,7 +508,17 @@ def corner_ratio_penalty_numpy(
 def _penalty(pr: _Problem, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
     """Corner and face penalties at local coordinates ``x``; fills ``grad``."""
     value = corner_ratio_penalty(
-        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, QUAD_TRIPLES, pr.quad_log_aim, grad
+        x,
+        pr.corners,
+        pr.elem_ptr,
+        pr.log_aim,
+        pr.log_volume,
+        pr.volume_band,
+        pr.volume_weight,
+        pr.quads,
+        QUAD_TRIPLES,
+        pr.quad_log_aim,
+        grad,
     )
     if not np.isfinite(value):
         return np.inf

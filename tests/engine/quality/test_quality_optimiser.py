@@ -55,11 +55,26 @@ def uniform_aims(blocks, jacobian, aspect=np.inf, warpage=180.0, skew=90.0) -> Q
     return QualityAims(per(jacobian), per(aspect), per(warpage), per(skew))
 
 
+def corner_args(pr):
+    """The corner penalty's arguments after the coordinates (compiled and NumPy orders)."""
+    compiled = (
+        pr.corners,
+        pr.elem_ptr,
+        pr.log_aim,
+        pr.log_volume,
+        pr.volume_band,
+        pr.volume_weight,
+        pr.quads,
+        QUAD_TRIPLES,
+        pr.quad_log_aim,
+    )
+    reference = (*compiled[:6], pr.quads, pr.quad_log_aim)
+    return compiled, reference
+
+
 def total_penalty(pr, x):
     grad = np.zeros_like(x)
-    value = corner_ratio_penalty(
-        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, QUAD_TRIPLES, pr.quad_log_aim, grad
-    )
+    value = corner_ratio_penalty(x, *corner_args(pr)[0], grad)
     value += face_shape_penalty(
         x, pr.faces, pr.log_aspect_aim, pr.warp_aim, pr.skew_aim, pr.weights, grad
     )
@@ -67,18 +82,25 @@ def total_penalty(pr, x):
 
 
 # ---------------------------------------------------------------------- penalties
-def test_compiled_corner_penalty_equals_numpy_reference_and_finite_differences():
+@pytest.mark.parametrize("volume_change", [None, 0.02])
+def test_compiled_corner_penalty_equals_numpy_reference_and_finite_differences(volume_change):
     coords, blocks = mixed_blocks()
-    pr = _build_problem(blocks, len(coords), np.arange(len(coords)), uniform_aims(blocks, 0.95),
-                        QualityOptions())  # fmt: skip
+    aims = uniform_aims(blocks, 0.95)
+    if volume_change is not None:  # reference volumes 10 % off the distorted ones
+        with_volume = quality_aims(
+            compute_quality(coords, blocks), blocks, rest_coords=coords * 1.033,
+            volume_change=volume_change,
+        )  # fmt: skip
+        aims = QualityAims(**{**aims.__dict__, "volume": with_volume.volume,
+                              "volume_change": volume_change})  # fmt: skip
+    pr = _build_problem(blocks, len(coords), np.arange(len(coords)), aims,
+                        QualityOptions(volume_weight=3.0))  # fmt: skip
+    assert np.isfinite(pr.volume_band).any() == (volume_change is not None)
+    compiled, reference = corner_args(pr)
     x = coords[pr.nodes]
     grad = np.zeros_like(x)
-    value = corner_ratio_penalty(
-        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, QUAD_TRIPLES, pr.quad_log_aim, grad
-    )
-    ref, ref_grad = corner_ratio_penalty_numpy(
-        x, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads, pr.quad_log_aim
-    )
+    value = corner_ratio_penalty(x, *compiled, grad)
+    ref, ref_grad = corner_ratio_penalty_numpy(x, *reference)
     assert value > 0
     assert value == pytest.approx(ref, rel=1e-12)
     np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-12)
@@ -88,11 +110,9 @@ def test_compiled_corner_penalty_equals_numpy_reference_and_finite_differences()
         plus[i, k] += h
         minus[i, k] -= h
         numeric = (
-            corner_ratio_penalty_numpy(plus, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads,
-                                       pr.quad_log_aim)[0]
-            - corner_ratio_penalty_numpy(minus, pr.corners, pr.elem_ptr, pr.log_aim, pr.quads,
-                                         pr.quad_log_aim)[0]
-        ) / (2 * h)  # fmt: skip
+            corner_ratio_penalty_numpy(plus, *reference)[0]
+            - corner_ratio_penalty_numpy(minus, *reference)[0]
+        ) / (2 * h)
         assert numeric == pytest.approx(ref_grad[i, k], abs=1e-6)
 
 
@@ -275,3 +295,27 @@ def test_nothing_free_changes_nothing(block_model):
     out, report = optimise_quality(coords, model.blocks, np.zeros(0, dtype=int), aims)
     np.testing.assert_array_equal(out, coords)
     assert report.free_nodes == 0
+
+
+def test_the_volume_aim_stops_elements_being_shrunk_out_of_the_way(block_model):
+    """The corner Jacobian, aspect, warpage and skew do not change when an element is scaled
+    down, so without a volume aim the optimiser may shrink elements to make room; with one each
+    solid keeps its volume within the band."""
+    model, coords = distorted_block(block_model)
+    q0 = compute_quality(model.coords, model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(model.coords - 2.0) < 1.99, axis=1))
+    squeezed = coords.copy()
+    centre = np.array([2.0, 2.0, 2.0])
+    squeezed[interior] = centre + 0.6 * (coords[interior] - centre)  # the middle shrunk
+    aims = quality_aims(q0, model.blocks, rest_coords=model.coords, volume_change=0.2)
+    assert len(aims.volume["hex8"]) == len(model.blocks["hex8"])
+    out, _ = optimise_quality(
+        squeezed, model.blocks, interior, aims, options=QualityOptions(volume_weight=10.0)
+    )
+    ratio_before = compute_quality(squeezed, model.blocks)["hex8"].volume / q0["hex8"].volume
+    ratio_after = compute_quality(out, model.blocks)["hex8"].volume / q0["hex8"].volume
+    assert ratio_before.min() < 0.5
+    assert ratio_after.min() > 1 / 1.2 - 0.05 and ratio_after.max() < 1.2 + 0.05
+    plain, _ = optimise_quality(squeezed, model.blocks, interior, quality_aims(q0, model.blocks))
+    ratio_plain = compute_quality(plain, model.blocks)["hex8"].volume / q0["hex8"].volume
+    assert ratio_plain.min() < 0.7  # nothing asked it to restore the volume
