@@ -315,22 +315,10 @@ def _contour_pairs(contours: SkinContours) -> list[tuple[int, int]]:
     return pairs
 
 
-def neighbour_planes(
+def _fitted_planes(
     contours: SkinContours, coords: NDArray[np.float64]
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-    """For every contour node that has a neighbouring contour nearer the joint: that contour's
-    plane at ``coords`` (centroid and least-squares normal of its nodes), oriented away from it
-    towards the node's contour.
-
-    Returns
-    -------
-    rows : (M,) ndarray of int
-        Rows of ``contours.nodes``.
-    normals : (M, 3) ndarray
-        Unit normals; the node is on the right side when ``normal . (x - point) >= 0``.
-    offsets : (M,) ndarray
-        ``normal . point`` for a point of the plane.
-    """
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each contour's centroid (C, 3) and least-squares unit normal (C, 3) at ``coords``."""
     x = coords[contours.nodes]
     n_c = contours.n_contours
     centers = np.zeros((n_c, 3))
@@ -343,13 +331,40 @@ def neighbour_planes(
         pts = x[contours.contour == c] - centers[c]
         if len(pts) >= 3:
             normals[c] = np.linalg.svd(pts, full_matrices=False)[2][-1]
+    return centers, normals
+
+
+def neighbour_planes(
+    contours: SkinContours, coords: NDArray[np.float64], both_ways: bool = False
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """For every contour node that has a neighbouring contour nearer the joint: that contour's
+    plane at ``coords`` (centroid and least-squares normal of its nodes), oriented away from it
+    towards the node's contour. With ``both_ways``, also every node against the plane of its
+    neighbour farther from the joint, oriented back towards the joint.
+
+    Returns
+    -------
+    rows : (M,) ndarray of int
+        Rows of ``contours.nodes``.
+    normals : (M, 3) ndarray
+        Unit normals; the node is on the right side when ``normal . (x - point) >= 0``.
+    offsets : (M,) ndarray
+        ``normal . point`` for a point of the plane.
+    """
+    centers, normals = _fitted_planes(contours, coords)
     rows, out_n, out_o = [], [], []
-    for a, b in _contour_pairs(contours):
-        n = normals[a] * np.sign(normals[a] @ (centers[b] - centers[a]) or 1.0)
-        sel = np.flatnonzero(contours.contour == b)
+
+    def add(plane: int, other: int, nodes_of: int) -> None:
+        n = normals[plane] * np.sign(normals[plane] @ (centers[other] - centers[plane]) or 1.0)
+        sel = np.flatnonzero(contours.contour == nodes_of)
         rows.append(sel)
         out_n.append(np.broadcast_to(n, (len(sel), 3)))
-        out_o.append(np.full(len(sel), n @ centers[a]))
+        out_o.append(np.full(len(sel), n @ centers[plane]))
+
+    for a, b in _contour_pairs(contours):
+        add(a, b, b)  # b's nodes beyond a's plane
+        if both_ways:
+            add(b, a, a)  # a's nodes short of b's plane
     if not rows:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
     return np.concatenate(rows), np.concatenate(out_n), np.concatenate(out_o)
@@ -370,10 +385,12 @@ class ContourOrder:
     """Keeps every skin contour on its side of the neighbouring contour nearer the joint.
 
     As half-space constraints for :func:`kneegui.smoothing.quality_optimiser.optimise_quality`:
-    each contour node must lie at least ``margin`` beyond the plane of its neighbour (or as far
-    as it lay in the initial pose, if that was less; a node already beyond it at rest is left
-    alone), the planes refitted to the current coordinates whenever the constraints are asked
-    for.
+    each contour node must lie at least ``margin`` beyond the plane of its neighbour nearer the
+    joint, and short of the plane of its neighbour farther from it (or as far as it lay in the
+    initial pose, if that was less; a node already beyond it at rest is left alone), the planes
+    refitted to the current coordinates whenever the constraints are asked for. Both ways,
+    because a neighbour that may not move (beyond the relaxed region) must stop a contour that
+    is pushed towards it.
 
     Parameters
     ----------
@@ -388,27 +405,20 @@ class ContourOrder:
         self, contours: SkinContours, rest_coords: NDArray[np.float64], margin: float
     ) -> None:
         self.contours = contours
-        rows, normals, offsets = neighbour_planes(contours, rest_coords)
+        rows, normals, offsets = neighbour_planes(contours, rest_coords, both_ways=True)
         rest = np.einsum("ij,ij->i", normals, rest_coords[contours.nodes[rows]]) - offsets
-        keep = rest >= 0.0
-        self._rows = rows[keep]
-        self._clearance = np.minimum(rest[keep], margin)
+        self._keep = rest >= 0.0
+        self._nodes = contours.nodes[rows[self._keep]]
+        self._clearance = np.minimum(rest[self._keep], margin)
 
     def constraints(
         self, coords: NDArray[np.float64]
     ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
         """``(nodes, normals, offsets)``: node ``k`` should satisfy ``normal . x >= offset``."""
-        rows, normals, offsets = neighbour_planes(self.contours, coords)
-        slot = np.full(len(self.contours.nodes), -1)
-        slot[rows] = np.arange(len(rows))
-        at = slot[self._rows]
-        return (
-            self.contours.nodes[self._rows],
-            normals[at],
-            offsets[at] + self._clearance,
-        )
+        _, normals, offsets = neighbour_planes(self.contours, coords, both_ways=True)
+        return self._nodes, normals[self._keep], offsets[self._keep] + self._clearance
 
     def crossing(self, coords: NDArray[np.float64]) -> NDArray[np.int64]:
-        """Contour nodes that do not keep their clearance (node indices)."""
+        """Contour nodes that do not keep their clearance (node indices, sorted)."""
         nodes, normals, offsets = self.constraints(coords)
-        return nodes[np.einsum("ij,ij->i", normals, coords[nodes]) < offsets]
+        return np.unique(nodes[np.einsum("ij,ij->i", normals, coords[nodes]) < offsets])
