@@ -111,25 +111,30 @@ class PatellaSeating:
             return np.zeros(0), np.zeros(0)
         return np.concatenate(out_short), np.concatenate(out_rate)
 
-    def seat(
-        self, patella: RigidTransform, femur: RigidTransform, iterations: int = 12
-    ) -> tuple[RigidTransform, float]:
-        """The patella's transform lifted to its rest clearance, and the lift (model units).
+    def lifted(
+        self, patella: RigidTransform, femur: RigidTransform, distance: float
+    ) -> RigidTransform:
+        """``patella`` moved ``distance`` away from the F-E axis (see :meth:`lift`)."""
+        if distance == 0.0:
+            return patella
+        lift = self._lift_direction(patella, femur)
+        return patella.then(RigidTransform(np.eye(3), distance * lift))
+
+    def lift(self, patella: RigidTransform, femur: RigidTransform, iterations: int = 12) -> float:
+        """The smallest lift (model units) that gives the patella its rest clearance back.
 
         Parameters
         ----------
         patella, femur : RigidTransform
             The two bones' motions from the initial pose (the tables' result).
         """
-        lift = self._lift_direction(patella, femur)
-
-        def lifted(distance: float) -> RigidTransform:
-            return patella.then(RigidTransform(np.eye(3), distance * lift))
+        direction = self._lift_direction(patella, femur)
 
         def measure(distance: float) -> tuple[float, float]:
             """Worst shortfall of the nodes a lift can clear, and the lift that clears them
             all if the distances change linearly."""
-            short, rate = self._shortfalls(lifted(distance), femur, lift)
+            moved = patella.then(RigidTransform(np.eye(3), distance * direction))
+            short, rate = self._shortfalls(moved, femur, direction)
             liftable = rate > MIN_RATE
             if not liftable.any():
                 return -np.inf, 0.0
@@ -138,7 +143,7 @@ class PatellaSeating:
 
         worst, step = measure(0.0)
         if worst <= SEATING_TOLERANCE:
-            return patella, 0.0
+            return 0.0
         # lift by the linearised step until clear (the surfaces curve, so a step may fall
         # short or overshoot), then close in on the smallest clear lift by regula falsi
         # (Illinois): the worst shortfall decreases as the patella rises
@@ -150,7 +155,7 @@ class PatellaSeating:
             if worst_high <= SEATING_TOLERANCE:
                 break
         else:
-            return lifted(high), high
+            return high
         # interpolation weights: the true shortfalls, the stalled side's halved (Illinois)
         weight_low, weight_high = worst_low - SEATING_TOLERANCE, worst_high - SEATING_TOLERANCE
         side = 0
@@ -161,15 +166,19 @@ class PatellaSeating:
             middle = min(max(middle, low + 0.05 * (high - low)), high - 0.05 * (high - low))
             worst_middle, _ = measure(middle)
             if worst_middle <= SEATING_TOLERANCE:
-                high, worst_high, weight_high = (
-                    middle,
-                    worst_middle,
-                    worst_middle - SEATING_TOLERANCE,
-                )
+                high, worst_high = middle, worst_middle
+                weight_high = worst_middle - SEATING_TOLERANCE
                 weight_low *= 0.5 if side == +1 else 1.0
                 side = +1
             else:
                 low, weight_low = middle, worst_middle - SEATING_TOLERANCE
                 weight_high *= 0.5 if side == -1 else 1.0
                 side = -1
-        return lifted(high), high
+        return high
+
+    def seat(
+        self, patella: RigidTransform, femur: RigidTransform, iterations: int = 12
+    ) -> tuple[RigidTransform, float]:
+        """The patella's transform lifted to its rest clearance, and the lift (model units)."""
+        distance = self.lift(patella, femur, iterations)
+        return self.lifted(patella, femur, distance), distance
