@@ -3,8 +3,9 @@
 ``xvfb-run -a -s "-screen 0 1600x1000x24" python scripts/screenshots.py`` opens the main window on
 the default demo leg and saves:
 
-- docs/images/gui-flexion90-jacobian.png: the knee at 90° with the Jacobian heat-map (skin
-  hidden, lateral half cut away) and the Quality panel;
+- docs/images/gui-flexion90-jacobian.png: the knee at 90°, relaxed and smoothed (Relax +
+  smooth, what the export writes), with the Jacobian heat-map (skin hidden, lateral half cut
+  away) and the Quality panel;
 - docs/images/gui-landmarks.png: the femur with the picked condyle nodes, the fitted circles,
   the F-E and L-R axes and the Landmarks panel;
 - docs/images/gui-ligaments.png: ligament stretch at 90° and the length-vs-flexion plot.
@@ -90,8 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     out1 = window.save_screenshot(args.outdir / "gui-landmarks.png")
     ws.set_pick_target("")
 
-    # 2. 90 degrees, Jacobian heat-map, skin hidden, lateral half cut away
+    # 2. 90 degrees, relaxed and smoothed as the export writes it (Relax + smooth), Jacobian
+    # heat-map, skin hidden, lateral half cut away
     window.flexion_panel.slider.setValue(900)
+    _wait(app, window)
+    window.guard(ws.smooth)
+    _wait(app, window)
     skin = set(roles.get("skin", []))
     for pid in vp.actors:
         ws.set_part_visible(pid, pid not in skin)

@@ -306,7 +306,7 @@ class RelaxOptions:
     optimise_quality: bool = True
     quality: QualityOptions = field(
         default_factory=lambda: QualityOptions(
-            rounds=15, iterations_per_round=150, constraint_stiffness=100.0, volume_weight=10.0
+            rounds=15, iterations_per_round=150, constraint_stiffness=100.0, volume_weight=3.0
         )
     )
     volume_change: float | None = 0.5

@@ -90,7 +90,8 @@ def tissue_in_bones_warnings(found: Mapping[str, Any]) -> list[str]:
 #: Patella and femur surface nodes closer than this to the other bone at rest (in mean condyle
 #: radii, 11 mm on the demo) are watched by the patellar seating.
 PATELLA_SEATING_BAND = 0.5
-#: The patellar lift is worked out at multiples of this flexion (degrees) and interpolated.
+#: The patellar lift is worked out every this many degrees from the initial flexion and
+#: interpolated.
 PATELLA_LIFT_STEP = 1.0
 
 #: Depth (in mean condyle radii, about 0.45 mm on the demo) beyond which a soft-tissue node counts
@@ -353,7 +354,7 @@ class Repositioner:
             self._end("delaunay embedding", t)
         self._surfaces: dict[str, BoneSurfaceDistance] | None = None  # built on first use
         self._seating: PatellaSeating | None = None
-        self._lifts: dict[float, float] = {}  # patellar lift at grid angles (bone_pose)
+        self._lifts: dict[int, float] = {}  # patellar lift at grid step k (bone_pose)
         if self.options.patella_tracking and len(self.groups.segment["patella"]):
             t = self._stage("patella seating", 0.8)
             self._seating = self._patella_seating()
@@ -574,19 +575,22 @@ class Repositioner:
         return bone
 
     def _patellar_lift(self, flexion_deg: float) -> float:
-        """The patellar seating's lift at ``flexion_deg``: worked out exactly at multiples of
-        :data:`PATELLA_LIFT_STEP` (once each, cached) and interpolated linearly between them. It
+        """The patellar seating's lift at ``flexion_deg``: worked out exactly every
+        :data:`PATELLA_LIFT_STEP` from the initial flexion (once each, cached) and interpolated
+        linearly in between. It
         varies smoothly with flexion, and a slider step then seldom pays for the distance
         queries (3-20 ms each)."""
-        low = np.floor(flexion_deg / PATELLA_LIFT_STEP) * PATELLA_LIFT_STEP
-        t = (flexion_deg - low) / PATELLA_LIFT_STEP
+        # the grid is anchored at the initial flexion, where the lift is exactly zero
+        steps = (flexion_deg - self.initial_flexion) / PATELLA_LIFT_STEP
+        low = int(np.floor(steps))
+        t = steps - low
         lifts = []
-        for grid in (low, low + PATELLA_LIFT_STEP) if t > 0 else (low,):
-            key = round(float(grid), 6)
-            if key not in self._lifts:
-                tr = solve_bone_pose(self.axes, self.setup, key).transforms
-                self._lifts[key] = self._seating.lift(tr["patella"], tr["femur"])
-            lifts.append(self._lifts[key])
+        for k in (low, low + 1) if t > 0 else (low,):
+            if k not in self._lifts:
+                angle = self.initial_flexion + k * PATELLA_LIFT_STEP
+                tr = solve_bone_pose(self.axes, self.setup, angle).transforms
+                self._lifts[k] = self._seating.lift(tr["patella"], tr["femur"])
+            lifts.append(self._lifts[k])
         return lifts[0] if t == 0 else (1.0 - t) * lifts[0] + t * lifts[1]
 
     def pose(self, flexion_deg: float) -> NDArray[np.float64]:
