@@ -370,6 +370,7 @@ class Repositioner:
         self.relaxation: ElasticRelaxation | None = None
         self._overlap_check: BoneOverlapCheck | None = None
         self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
+        self._order_contours: SkinContours | None = None  # for blend: the relaxation's order
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -500,9 +501,7 @@ class Repositioner:
         options = self.options.relaxation
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
-        contours = self.contours
-        if contours is None and options.contour_margin is not None and len(g.skin) >= 4:
-            contours = self._build_contours()
+        contours = self._relaxed_contours() if options.contour_margin is not None else None
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
@@ -525,16 +524,36 @@ class Repositioner:
             skin_contours=contours,
         )
 
+    def _relaxed_contours(self) -> SkinContours | None:
+        """The skin contours the relaxation keeps in order (the method's own, else built once;
+        None without skin)."""
+        if self.contours is None and self._order_contours is None and len(self.groups.skin) >= 4:
+            self._order_contours = self._build_contours()
+        return self.contours if self.contours is not None else self._order_contours
+
     def _soft_near_joint(self) -> NDArray[np.int64]:
-        """Soft-tissue nodes within ``relax_reach`` mean condyle radii of the F-E axis (at rest):
-        those the relaxation may move and the in-bone check measures. Computed once."""
+        """Soft-tissue nodes within ``relax_reach`` mean condyle radii of the F-E axis (at rest),
+        and every node of a skin contour one of them belongs to: those the relaxation may move
+        and the in-bone check measures. Computed once.
+
+        Whole contours, because a contour that is free only on the side nearer the axis (its
+        anterior and posterior nodes lie farther from it than its medial and lateral ones) can
+        be held in order neither by nor against its free neighbour: the default demo at 120 deg
+        kept 8 nodes of such a contour behind the tilted plane of the next one."""
         if self._near_soft is None:
             axis = self.axes.fe_axis
             rel = self.model.coords[self.groups.soft] - axis.point
             radial = rel - np.outer(rel @ axis.direction, axis.direction)
             size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
-            near = np.linalg.norm(radial, axis=1) < self.options.relax_reach * size
-            self._near_soft = self.groups.soft[near]
+            reach = self.options.relax_reach * size
+            near = self.groups.soft[np.linalg.norm(radial, axis=1) < reach]
+            contours = self._relaxed_contours()
+            if contours is not None:
+                in_near = np.zeros(self.model.n_nodes, dtype=bool)
+                in_near[near] = True
+                touched = np.unique(contours.contour[in_near[contours.nodes]])
+                near = np.union1d(near, contours.nodes[np.isin(contours.contour, touched)])
+            self._near_soft = near
         return self._near_soft
 
     def _bone_contact(self, reach: float) -> BoneContact:
