@@ -136,15 +136,8 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
         nz = px * qy - py * qx
         for i in range(4):
             c = quads[q, quad_triples[i, 0]]
-            a = quads[q, quad_triples[i, 1]]
-            b = quads[q, quad_triples[i, 2]]
-            ux = x[a, 0] - x[c, 0]
-            uy = x[a, 1] - x[c, 1]
-            uz = x[a, 2] - x[c, 2]
-            vx = x[b, 0] - x[c, 0]
-            vy = x[b, 1] - x[c, 1]
-            vz = x[b, 2] - x[c, 2]
-            d = nx * (uy * vz - uz * vy) + ny * (uz * vx - ux * vz) + nz * (ux * vy - uy * vx)
+            wx, wy, wz = _normal(x, c, quads[q, quad_triples[i, 1]], quads[q, quad_triples[i, 2]])
+            d = nx * wx + ny * wy + nz * wz
             if not d > 0.0:
                 return math.inf
             dets[i] = d
@@ -165,38 +158,16 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             c = quads[q, quad_triples[i, 0]]
             a = quads[q, quad_triples[i, 1]]
             b = quads[q, quad_triples[i, 2]]
-            ux = x[a, 0] - x[c, 0]
-            uy = x[a, 1] - x[c, 1]
-            uz = x[a, 2] - x[c, 2]
-            vx = x[b, 0] - x[c, 0]
-            vy = x[b, 1] - x[c, 1]
-            vz = x[b, 2] - x[c, 2]
-            # d = (u x v) . n with n = p x q: dd/du = v x n, dd/dv = n x u, and with
-            # w = u x v, dd/dp = q x w, dd/dq = w x p
-            gux = s * (vy * nz - vz * ny)
-            guy = s * (vz * nx - vx * nz)
-            guz = s * (vx * ny - vy * nx)
-            gvx = s * (ny * uz - nz * uy)
-            gvy = s * (nz * ux - nx * uz)
-            gvz = s * (nx * uy - ny * ux)
-            wx = uy * vz - uz * vy
-            wy = uz * vx - ux * vz
-            wz = ux * vy - uy * vx
+            # d = w . n with w = (x_a - x_c) x (x_b - x_c) and n = p x q: the corner's
+            # vectors as in _cross_grad, and dd/dp = q x w, dd/dq = w x p
+            _cross_grad(x, grad, c, a, b, nx, ny, nz, s)
+            wx, wy, wz = _normal(x, c, a, b)
             gpx = s * (qy * wz - qz * wy)
             gpy = s * (qz * wx - qx * wz)
             gpz = s * (qx * wy - qy * wx)
             gqx = s * (wy * pz - wz * py)
             gqy = s * (wz * px - wx * pz)
             gqz = s * (wx * py - wy * px)
-            grad[a, 0] += gux
-            grad[a, 1] += guy
-            grad[a, 2] += guz
-            grad[b, 0] += gvx
-            grad[b, 1] += gvy
-            grad[b, 2] += gvz
-            grad[c, 0] -= gux + gvx
-            grad[c, 1] -= guy + gvy
-            grad[c, 2] -= guz + gvz
             grad[n2, 0] += gpx
             grad[n2, 1] += gpy
             grad[n2, 2] += gpz
