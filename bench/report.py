@@ -471,10 +471,11 @@ METHOD_NOTES = """## How it is measured
 - **Stages.** precompute = constructing `Repositioner(model, setup)` with the default
   `RepositionOptions()` (at least 3 runs up to paper scale, 1 above); `pose()` = one call at a
   new angle (0.5° slider steps after a warm-up);
-  full pose with quality = `pose_model(..., smooth=False)` (initial and posed quality, volume
-  change, gate, report); quality alone = `compute_quality` of the posed coordinates; deck read =
-  `read_deck` of a deck written by `write_model`; deck write = `write_deck` of the read model
-  with the posed coordinates; smoothing = the smoothing stage of `pose_model(..., smooth=True)`;
+  full pose with quality = `pose_model(..., smooth=True)` less its smoothing stage (mapping,
+  relaxation, initial and posed quality, volume change, gate, report); quality alone =
+  `compute_quality` of the posed coordinates; deck read = `read_deck` of a deck written by
+  `write_model`; deck write = `write_deck` of the read model with the posed coordinates;
+  smoothing = the smoothing stage of that `pose_model` run;
   GUI frame = `bench/gui_bench.py` (slider move to end of render in the real window under Xvfb,
   part colours and Jacobian heat map).
 - **Baselines** (bench/baselines.py), driven by kneegui's own bone transforms at each angle so
