@@ -19,6 +19,7 @@ from kneegui.quality import compute_quality
 from kneegui.reposition import METHODS, Repositioner, RepositionOptions, classify_nodes
 from kneegui.reposition.checks import penetrating, surface_triangles
 from kneegui.reposition.pipeline import pose_model
+from kneegui.reposition.skin_contours import build_skin_contours, count_contour_crossings
 from kneegui.setup import load_setup
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -63,6 +64,17 @@ def measure(elements: int, methods: tuple[str, ...], smooth: bool) -> dict:
         surface_triangles(leg.model, setup.parts_of(role), shells=False)
         for role in ("femur", "tibia", "fibula", "patella")
     ]
+    axes_rep = Repositioner(leg.model, setup, RepositionOptions(relax=False))
+    contours = build_skin_contours(
+        leg.model.coords,
+        groups.skin,
+        axes_rep.axes.knee_center,
+        axes_rep.axes.superior,
+        axes_rep.axes.tibia_axis.direction,
+        setup.skin_contours,
+        axes_rep.options.zone_factor,
+        groups.bone_surface,
+    )
     variants = {m: RepositionOptions(method=m) for m in methods}
     variants.update(VARIANTS)
     for method, options in variants.items():
@@ -90,6 +102,9 @@ def measure(elements: int, methods: tuple[str, ...], smooth: bool) -> dict:
                 "max_element_volume_change_pct": r["volume_change"]["max_element_pct"],
                 "soft_tissue_volume_change_pct": r["volume_change"]["soft_tissue_total_pct"],
                 "nodes_inside_bones": inside,
+                "contour_crossings": count_contour_crossings(
+                    contours, posed.model.coords, reference=leg.model.coords
+                ),
                 "relax_s": r["timings_s"].get("pose_relax"),
             }
             if smooth:
@@ -118,8 +133,10 @@ def to_markdown(res: dict, smooth: bool) -> str:
         "Pose time = median of 15 `pose()` calls (3 per angle: the live slider, never relaxed). "
         "The other columns are measured on what `kneegui pose` writes: worst J, inverted, "
         "aspect, warpage and skew after the mapping and the relaxation (relax s = its time), "
-        'ΔV and "in bone" after smoothing too. "In bone" = interior soft-tissue nodes (of '
-        f"{res['interior_nodes']:,}) deeper than {PENETRATION_TOLERANCE} mm inside a bone.",
+        'ΔV, "in bone" and "crossing" after smoothing too. "In bone" = interior soft-tissue '
+        f"nodes (of {res['interior_nodes']:,}) deeper than {PENETRATION_TOLERANCE} mm inside a "
+        'bone; "crossing" = skin nodes beyond the plane of the neighbouring skin contour nearer '
+        "the joint (the paper's kink-free condition; `count_contour_crossings`).",
         "",
     ]
     for method, m in res["methods"].items():
@@ -128,9 +145,9 @@ def to_markdown(res: dict, smooth: bool) -> str:
             f"{m['pose_median_ms']:.1f} ms",
             "",
             "| angle | achieved | worst J | inverted | worst aspect | worst warpage ° | "
-            "worst skew ° | max element ΔV % | soft-tissue ΔV % | in bone | relax s |"
+            "worst skew ° | max element ΔV % | soft-tissue ΔV % | in bone | crossing | relax s |"
             + (" smoothed worst J | smoothed inverted |" if smooth else ""),
-            "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|" if smooth else ""),
+            "|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|" if smooth else ""),
         ]
         for r in m["angles"]:
             row = (
@@ -139,6 +156,7 @@ def to_markdown(res: dict, smooth: bool) -> str:
                 f"{r['posed_worst_warpage']:.1f} | {r['posed_worst_skew']:.1f} | "
                 f"{r['max_element_volume_change_pct']:.1f} | "
                 f"{r['soft_tissue_volume_change_pct']:.2f} | {r['nodes_inside_bones']} | "
+                f"{r['contour_crossings']} | "
                 + ("–" if r["relax_s"] is None else f"{r['relax_s']:.1f}")
                 + " |"
             )
