@@ -596,9 +596,8 @@ class Repositioner:
     def _patellar_lift(self, flexion_deg: float) -> float:
         """The patellar seating's lift at ``flexion_deg``: worked out exactly every
         :data:`PATELLA_LIFT_STEP` from the initial flexion (once each, cached) and interpolated
-        linearly in between. It
-        varies smoothly with flexion, and a slider step then seldom pays for the distance
-        queries (3-20 ms each)."""
+        linearly in between. It varies smoothly with flexion, and a slider step then seldom
+        pays for the distance queries (3-20 ms each)."""
         # the grid is anchored at the initial flexion, where the lift is exactly zero
         steps = (flexion_deg - self.initial_flexion) / PATELLA_LIFT_STEP
         low = int(np.floor(steps))
