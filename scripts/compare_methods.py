@@ -101,6 +101,10 @@ def measure(elements: int, methods: tuple[str, ...], smooth: bool) -> dict:
                 "posed_worst_skew": r["quality"]["posed"]["skew"]["worst"],
                 "max_element_volume_change_pct": r["volume_change"]["max_element_pct"],
                 "soft_tissue_volume_change_pct": r["volume_change"]["soft_tissue_total_pct"],
+                "p95_element_volume_change_pct": r["volume_change"]["soft_element_p95_abs_pct"],
+                "elements_volume_change_over_25_pct": r["volume_change"]["soft_elements_over_pct"][
+                    "25"
+                ],
                 "nodes_inside_bones": inside,
                 "contour_crossings": count_contour_crossings(
                     contours, posed.model.coords, reference=leg.model.coords
@@ -133,7 +137,9 @@ def to_markdown(res: dict, smooth: bool) -> str:
         "Pose time = median of 15 `pose()` calls (3 per angle: the live slider, never relaxed). "
         "The other columns are measured on what `kneegui pose` writes: worst J, inverted, "
         "aspect, warpage and skew after the mapping and the relaxation (relax s = its time), "
-        'ΔV, "in bone" and "crossing" after smoothing too. "In bone" = interior soft-tissue '
+        "ΔV (element volume change: the largest of any solid, the 95th percentile of the soft "
+        "solids' and how many of them changed by more than 25 %), "
+        '"in bone" and "crossing" after smoothing too. "In bone" = interior soft-tissue '
         f"nodes (of {res['interior_nodes']:,}) deeper than {PENETRATION_TOLERANCE} mm inside a "
         'bone; "crossing" = skin nodes beyond the plane of the neighbouring skin contour nearer '
         "the joint (the paper's kink-free condition; `count_contour_crossings`).",
@@ -145,9 +151,11 @@ def to_markdown(res: dict, smooth: bool) -> str:
             f"{m['pose_median_ms']:.1f} ms",
             "",
             "| angle | achieved | worst J | inverted | worst aspect | worst warpage ° | "
-            "worst skew ° | max element ΔV % | soft-tissue ΔV % | in bone | crossing | relax s |"
+            "worst skew ° | max element ΔV % | p95 \\|ΔV\\| % | ΔV > 25 % | soft-tissue ΔV % | "
+            "in bone | crossing | relax s |"
             + (" smoothed worst J | smoothed inverted |" if smooth else ""),
-            "|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|" if smooth else ""),
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+            + ("---|---|" if smooth else ""),
         ]
         for r in m["angles"]:
             row = (
@@ -155,6 +163,8 @@ def to_markdown(res: dict, smooth: bool) -> str:
                 f"{r['posed_inverted']} | {r['posed_worst_aspect']:.2f} | "
                 f"{r['posed_worst_warpage']:.1f} | {r['posed_worst_skew']:.1f} | "
                 f"{r['max_element_volume_change_pct']:.1f} | "
+                f"{r['p95_element_volume_change_pct']:.1f} | "
+                f"{r['elements_volume_change_over_25_pct']} | "
                 f"{r['soft_tissue_volume_change_pct']:.2f} | {r['nodes_inside_bones']} | "
                 f"{r['contour_crossings']} | "
                 + ("–" if r["relax_s"] is None else f"{r['relax_s']:.1f}")
