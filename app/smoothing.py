@@ -40,7 +40,7 @@ def smooth_current(
     ``coords`` around its degraded elements; ``bone_guard(coords)`` (e.g.
     :meth:`kneegui.reposition.Repositioner.bone_depth_guard` at the pose's flexion) gives the
     smoother's position guard that keeps the tissue out of the bones."""
-    from kneegui.smoothing.pipeline import smooth_posed_model
+    from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 
     if setup is None:
         raise SetupError("smoothing needs a valid setup (roles say which parts may move)")

@@ -277,7 +277,7 @@ class BoneDepthGuard:
 
     A node outside every bone in the pose being smoothed must stay outside; a node already inside
     one (the pose put it there) may not go deeper. Used as ``position_guard`` of
-    :func:`kneegui.smoothing.smooth_mesh`: the smoother then only keeps moves that respect it, so
+    :func:`kneegui.meshopt.smooth_mesh`: the smoother then only keeps moves that respect it, so
     smoothing can no longer buy a better Jacobian by pushing tissue into a bone.
 
     Parameters

@@ -132,7 +132,7 @@ def pose_model(
     final, final_q = posed, posed_q
     smoothing = None
     if smooth:
-        from kneegui.smoothing.pipeline import smooth_posed_model
+        from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 
         def smoothing_progress(fraction: float, message: str) -> None:
             report_progress(0.5 + 0.45 * fraction, message)

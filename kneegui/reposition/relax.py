@@ -27,7 +27,7 @@ bones (and the tissue attached to them) held where the kinematics put them:
   instead of entering it.
 - polish: the energy evens out the distortion on average; the worst elements it leaves are then
   lifted by the quality-guarded smoother
-  (:func:`kneegui.smoothing.smooth_mesh`) on the same free nodes, with a guard that lets no node
+  (:func:`kneegui.meshopt.smooth_mesh`) on the same free nodes, with a guard that lets no node
   go deeper into a bone than it is or than the contact allows.
 
 Element count, node ids and connectivity never change; only the free nodes move.
@@ -45,18 +45,18 @@ from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
-from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
-from kneegui.optimize import minimize_lbfgs
-from kneegui.reposition.contact import BoneSurfaceDistance
-from kneegui.reposition.skin_contours import ContourOrder, SkinContours
-from kneegui.smoothing.quality_optimiser import (
+from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.quality_optimiser import (
     QualityAims,
     QualityOptimisationReport,
     QualityOptions,
     optimise_quality,
     shortfall_region,
 )
-from kneegui.smoothing.smoother import SmoothingReport, corner_determinants, smooth_mesh
+from kneegui.meshopt.smoother import SmoothingReport, corner_determinants, smooth_mesh
+from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
+from kneegui.reposition.contact import BoneSurfaceDistance
+from kneegui.reposition.skin_contours import ContourOrder, SkinContours
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -65,7 +65,7 @@ ProgressCallback = Callable[[float, str], None]
 APEX_DEPTH = 0.3
 
 try:  # the compiled kernel (Numba); the NumPy reference is used where Numba is missing
-    from kneegui.reposition.relax_kernel import foldover_free_energy as _kernel
+    from kneegui.meshopt.foldover_kernel import foldover_free_energy as _kernel
 except ImportError:  # pragma: no cover - numba is a dependency
     _kernel = None
 
@@ -248,7 +248,7 @@ class RelaxOptions:
         Distance from the bone surface the contact holds nodes at (model units).
     optimise_quality : bool
         After the energy has untangled the region, bring its elements within their quality
-        aims with :func:`kneegui.smoothing.quality_optimiser.optimise_quality` (all four
+        aims with :func:`kneegui.meshopt.quality_optimiser.optimise_quality` (all four
         metrics, all nodes together, the bone contact as constraints; needs the element
         blocks and aims, see :class:`ElasticRelaxation`).
     quality : QualityOptions
@@ -553,10 +553,10 @@ class ElasticRelaxation:
         none.
     goals : mapping of str to (m,) ndarray, optional
         Per element of ``blocks``, the corner Jacobian the polish aims at
-        (:func:`kneegui.smoothing.pipeline.smoothing_goals`; default 0.6 everywhere).
+        (:func:`kneegui.meshopt.smoothing_pipeline.smoothing_goals`; default 0.6 everywhere).
     aims : QualityAims, optional
         Per element of ``blocks``, the quality the optimisation aims at
-        (:func:`kneegui.smoothing.quality_optimiser.quality_aims`); without them there is no
+        (:func:`kneegui.meshopt.quality_optimiser.quality_aims`); without them there is no
         quality optimisation.
     skin_contours : SkinContours, optional
         The skin's contours, kept in order by the quality optimisation

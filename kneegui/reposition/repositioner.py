@@ -32,6 +32,8 @@ from scipy.spatial import cKDTree
 from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
+from kneegui.meshopt.quality_optimiser import quality_aims
+from kneegui.meshopt.smoothing_pipeline import smoothing_goals
 from kneegui.model import Model
 from kneegui.quality import compute_quality
 from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
@@ -61,8 +63,6 @@ from kneegui.reposition.skin_contours import (
 )
 from kneegui.setup.condyles import surface_node_indices
 from kneegui.setup.format import JointSetup
-from kneegui.smoothing.pipeline import smoothing_goals
-from kneegui.smoothing.quality_optimiser import quality_aims
 
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.

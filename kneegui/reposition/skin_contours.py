@@ -384,7 +384,7 @@ def _beyond_plane(
 class ContourOrder:
     """Keeps every skin contour on its side of the neighbouring contour nearer the joint.
 
-    As half-space constraints for :func:`kneegui.smoothing.quality_optimiser.optimise_quality`:
+    As half-space constraints for :func:`kneegui.meshopt.quality_optimiser.optimise_quality`:
     each contour node must lie at least ``margin`` beyond the plane of its neighbour nearer the
     joint, and short of the plane of its neighbour farther from it (or as far as it lay in the
     initial pose, if that was less; a node already beyond it at rest is left alone), the planes

@@ -7,12 +7,12 @@ import pytest
 
 demo = pytest.importorskip("kneegui.demo")
 
-from kneegui.quality import compute_quality, summarize_quality  # noqa: E402
-from kneegui.smoothing import (  # noqa: E402
+from kneegui.meshopt import (  # noqa: E402
     degraded_elements,
     smooth_posed_model,
     smoothing_free_nodes,
 )
+from kneegui.quality import compute_quality, summarize_quality  # noqa: E402
 
 SOFT = ("flesh", "ligament", "meniscus", "tendon", "capsule")
 BONES = ("femur", "tibia", "fibula", "patella", "fixed")

@@ -7,13 +7,13 @@ import pytest
 
 from kneegui.errors import SetupError
 from kneegui.geometry.axes import measure_flexion
+from kneegui.meshopt.topology import boundary_node_mask
 from kneegui.quality import compute_quality
 from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.checks import inside_closed_surface, penetrating, surface_triangles
 from kneegui.reposition.relax import RelaxOptions
 from kneegui.reposition.skin_contours import build_skin_contours, count_contour_crossings
 from kneegui.setup import load_setup
-from kneegui.smoothing.topology import boundary_node_mask
 
 demo_module = pytest.importorskip("kneegui.demo")
 

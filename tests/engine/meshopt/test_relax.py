@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.quality_optimiser import quality_aims
+from kneegui.meshopt.smoother import corner_determinants
 from kneegui.model import ElementBlock
-from kneegui.optimize import minimize_lbfgs
 from kneegui.quality import compute_quality
 from kneegui.reposition.relax import (
     ElasticRelaxation,
@@ -15,8 +17,6 @@ from kneegui.reposition.relax import (
     corner_tetrahedra,
     shell_face_tetrahedra,
 )
-from kneegui.smoothing.quality_optimiser import quality_aims
-from kneegui.smoothing.smoother import corner_determinants
 
 
 def hex_block(n: int = 4, size: float = 10.0):
@@ -214,7 +214,7 @@ def test_quality_optimisation_brings_the_region_within_its_aims():
 _LBFGS_RUN = """
 import hashlib
 import numpy as np
-from kneegui.optimize import minimize_lbfgs
+from kneegui.meshopt.lbfgs import minimize_lbfgs
 
 rng = np.random.default_rng(3)
 n = 120_000

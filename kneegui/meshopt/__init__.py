@@ -1,4 +1,14 @@
-"""Connectivity-preserving smoothing of the soft tissue after posing (ALGORITHM.md §5).
+"""Mesh improvement: every stage that moves free nodes to make a posed mesh solver-ready.
+
+The stages, in the order an export runs them (ALGORITHM.md §5):
+
+- :mod:`~kneegui.meshopt.foldover_kernel` + :mod:`~kneegui.meshopt.lbfgs`: the foldover-free
+  elastic energy and the deterministic L-BFGS that untangles inverted elements;
+- :mod:`~kneegui.meshopt.quality_optimiser`: all free nodes moved together until every element
+  meets its quality aims;
+- :mod:`~kneegui.meshopt.smoother`: connectivity-preserving smoothing of what is still degraded.
+
+Smoothing helpers:
 
 - :func:`smoothing_free_nodes` / :func:`smoothing_sliding_nodes`: which nodes may move.
 - :func:`degraded_elements`: the elements to work on (inverted, or below the warn level and
@@ -7,19 +17,19 @@
 - :func:`smooth_posed_model`: all of the above for a posed model and its roles.
 """
 
-from kneegui.smoothing.free_nodes import (
+from kneegui.meshopt.free_nodes import (
     MOVABLE_SOLID_TYPES,
     degraded_elements,
     smoothing_free_nodes,
     smoothing_sliding_nodes,
 )
-from kneegui.smoothing.pipeline import smooth_posed_model
-from kneegui.smoothing.smoother import (
+from kneegui.meshopt.smoother import (
     SMOOTHED_TYPES,
     SmoothingReport,
     corner_quality,
     smooth_mesh,
 )
+from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 
 __all__ = [
     "MOVABLE_SOLID_TYPES",

@@ -7,25 +7,25 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.model import Model
-from kneegui.quality.metrics import QualityResult, compute_quality
-from kneegui.smoothing.free_nodes import (
+from kneegui.meshopt.free_nodes import (
     degraded_elements,
     smoothing_free_nodes,
     smoothing_sliding_nodes,
 )
-from kneegui.smoothing.smoother import (
+from kneegui.meshopt.smoother import (
     CancelCallback,
     ProgressCallback,
     SmoothingReport,
     smooth_mesh,
 )
+from kneegui.model import Model
+from kneegui.quality.metrics import QualityResult, compute_quality
 
 
 def smoothing_goals(
     initial: QualityResult, threshold: float = 0.6, tolerance: float = 0.02
 ) -> dict[str, NDArray[np.float64]]:
-    """Each element's quality goal for :func:`kneegui.smoothing.smooth_mesh`: ``threshold``, or
+    """Each element's quality goal for :func:`kneegui.meshopt.smooth_mesh`: ``threshold``, or
     its initial corner Jacobian less ``tolerance`` if that is lower (an element that starts
     poor is brought back to where it was, not above)."""
     return {
@@ -78,9 +78,9 @@ def smooth_posed_model(
     soft_interfaces : bool
         Also move nodes shared only by soft-tissue solids of different parts.
     progress, cancel : callable, optional
-        See :func:`kneegui.smoothing.smooth_mesh`.
+        See :func:`kneegui.meshopt.smooth_mesh`.
     **options
-        Passed to :func:`kneegui.smoothing.smooth_mesh` (``max_sweeps``, ``optimize``, ...).
+        Passed to :func:`kneegui.meshopt.smooth_mesh` (``max_sweeps``, ``optimize``, ...).
 
     Returns
     -------

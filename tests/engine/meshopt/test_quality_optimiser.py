@@ -8,10 +8,8 @@ import numpy as np
 import pytest
 
 from kneegui.errors import Cancelled
-from kneegui.model import ElementBlock
-from kneegui.quality import compute_quality
-from kneegui.smoothing.quality_kernel import corner_ratio_penalty, face_shape_penalty
-from kneegui.smoothing.quality_optimiser import (
+from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_penalty
+from kneegui.meshopt.quality_optimiser import (
     QUAD_TRIPLES,
     QualityAims,
     QualityOptions,
@@ -21,6 +19,8 @@ from kneegui.smoothing.quality_optimiser import (
     quality_aims,
     shortfall_region,
 )
+from kneegui.model import ElementBlock
+from kneegui.quality import compute_quality
 
 CUBE = np.array(
     [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)],

@@ -7,9 +7,9 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.meshopt.topology import boundary_node_mask, node_part_count
 from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult
-from kneegui.smoothing.topology import boundary_node_mask, node_part_count
 
 #: Solid types whose nodes the smoother can move (tet10 mid-side nodes would be left behind).
 MOVABLE_SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4")

@@ -1,4 +1,4 @@
-"""Models built in memory for the quality and smoothing tests."""
+"""Models built in memory for the quality, mesh-improvement and other engine tests."""
 
 from __future__ import annotations
 

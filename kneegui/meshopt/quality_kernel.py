@@ -1,6 +1,6 @@
 """Compiled penalties of the quality optimiser (fused loops over elements and faces).
 
-:func:`kneegui.smoothing.quality_optimiser.corner_ratio_penalty_numpy` is the reference; this
+:func:`kneegui.meshopt.quality_optimiser.corner_ratio_penalty_numpy` is the reference; this
 is the same arithmetic, element by element, compiled with Numba (tests check the two agree).
 """
 

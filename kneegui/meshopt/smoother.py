@@ -26,16 +26,16 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
 from kneegui.errors import Cancelled, GeometryError
-from kneegui.model import CORNER_TRIPLES as MODEL_CORNER_TRIPLES
-from kneegui.model import ElementBlock, Model
-from kneegui.smoothing.batched import build_problems, nelder_mead
-from kneegui.smoothing.topology import (
+from kneegui.meshopt.batched import build_problems, nelder_mead
+from kneegui.meshopt.topology import (
     ELEMENT_EDGES,
     SOLID_FACES,
     boundary_faces,
     boundary_node_normals,
     unique_pairs,
 )
+from kneegui.model import CORNER_TRIPLES as MODEL_CORNER_TRIPLES
+from kneegui.model import ElementBlock, Model
 
 ProgressCallback = Callable[[float, str], None]
 CancelCallback = Callable[[], bool]
@@ -476,7 +476,7 @@ def smooth_mesh(
         Element blocks; ``None`` to use the model's.
     free_nodes : (N,) array_like of bool, or array_like of int
         Nodes allowed to move in any direction (mask or indices), e.g. from
-        :func:`kneegui.smoothing.smoothing_free_nodes`.
+        :func:`kneegui.meshopt.smoothing_free_nodes`.
     sliding_nodes : (N,) bool or int array_like, optional
         Surface nodes allowed to move only in the tangent plane of the solid mesh's boundary
         (e.g. skin nodes). Nodes on a feature edge (boundary faces deviating more than
@@ -495,7 +495,7 @@ def smooth_mesh(
         to their initial quality rather than above it.
     optimizer : {"batched", "scipy"}
         Stage 2: ``"batched"`` runs one Nelder-Mead simplex per node for all the nodes of a
-        colour at once (vectorised, :mod:`kneegui.smoothing.batched`); ``"scipy"`` calls
+        colour at once (vectorised, :mod:`kneegui.meshopt.batched`); ``"scipy"`` calls
         ``scipy.optimize.minimize(method="Nelder-Mead")`` node by node, worst first (a few
         milliseconds per node). Same objective and acceptance rules.
     max_optimized_nodes : int
@@ -869,7 +869,7 @@ def _batched_stage(
     """Stage 2 with one Nelder-Mead simplex per node, all nodes of a colour at once.
 
     Returns (nodes tried, nodes improved). Same objective and acceptance as the per-node
-    scipy path; see :mod:`kneegui.smoothing.batched`.
+    scipy path; see :mod:`kneegui.meshopt.batched`.
     """
     nb = st.nb
     tried = improved = 0

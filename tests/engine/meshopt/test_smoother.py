@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 
 from kneegui.errors import Cancelled
-from kneegui.quality import compute_quality
-from kneegui.smoothing import (
+from kneegui.meshopt import (
     degraded_elements,
     smooth_mesh,
     smooth_posed_model,
     smoothing_free_nodes,
     smoothing_sliding_nodes,
 )
-from kneegui.smoothing.smoother import edge_ratio
-from kneegui.smoothing.topology import boundary_node_mask
+from kneegui.meshopt.smoother import edge_ratio
+from kneegui.meshopt.topology import boundary_node_mask
+from kneegui.quality import compute_quality
 
 
 def _swirl(model, amplitude, width):
@@ -283,7 +283,7 @@ def test_smoothing_repairs_wedge_and_tet_meshes(block_model, kind):
 
 
 def test_colouring_separates_nodes_that_share_an_element(block_model):
-    from kneegui.smoothing.smoother import _build_neighbourhood, _colour
+    from kneegui.meshopt.smoother import _build_neighbourhood, _colour
 
     model = block_model(6, 6, 6)
     movable = np.flatnonzero(smoothing_free_nodes(model, [2], [1]))
@@ -324,8 +324,8 @@ REFERENCE_SHAPES = {
 @pytest.mark.parametrize("etype", list(REFERENCE_SHAPES))
 def test_smoother_measure_equals_reported_corner_jacobian(etype):
     """The smoother's fast corner Jacobian is the one the quality report shows."""
+    from kneegui.meshopt import corner_quality
     from kneegui.model import ElementBlock
-    from kneegui.smoothing import corner_quality
 
     shape = np.array(REFERENCE_SHAPES[etype], dtype=float)
     n, k = 3000, len(shape)
@@ -341,8 +341,8 @@ def test_smoother_measure_equals_reported_corner_jacobian(etype):
 @pytest.mark.parametrize("kind", ["hex8", "wedge6", "tet4"])
 def test_batched_local_problem_is_the_exact_affine_map(kind, block_model):
     """d0 + G . delta equals the corner determinants recomputed with the node moved."""
-    from kneegui.smoothing.batched import build_problems, objective
-    from kneegui.smoothing.smoother import CORNER_TRIPLES, corner_determinants
+    from kneegui.meshopt.batched import build_problems, objective
+    from kneegui.meshopt.smoother import CORNER_TRIPLES, corner_determinants
 
     model = block_model(3, 3, 3, skin=False)
     if kind != "hex8":

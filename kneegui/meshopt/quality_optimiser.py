@@ -22,7 +22,7 @@ nothing to gain stay put) and optional half-space constraints ``n . x >= offset`
 penalty (the repositioner's bone contact: tissue slides along a bone without entering it),
 re-evaluated between rounds.
 
-Why beside the node-by-node smoother (:mod:`kneegui.smoothing.smoother`): that one moves one
+Why beside the node-by-node smoother (:mod:`kneegui.meshopt.smoother`): that one moves one
 node at a time and keeps a move only if no element around it gets worse, so it cannot move a
 column of nodes together, which is what flesh pressed between two bones needs. Why all four
 metrics: the Jacobian alone can be raised by folding faces (measured on the default demo at 90
@@ -41,11 +41,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled
+from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_penalty
 from kneegui.model import CORNER_TRIPLES, SOLID_FACES, ElementBlock
-from kneegui.optimize import minimize_lbfgs
 from kneegui.quality.metrics import QualityResult, compute_quality
 from kneegui.quality.thresholds import Thresholds, load_thresholds
-from kneegui.smoothing.quality_kernel import corner_ratio_penalty, face_shape_penalty
 
 ProgressCallback = Callable[[float, str], None]
 #: ``constraints(coords) -> (nodes, normals, offsets)``: node ``nodes[k]`` should satisfy
@@ -447,7 +447,7 @@ def corner_ratio_penalty_numpy(
     quad_log_aim: NDArray[np.float64],
 ) -> tuple[float, NDArray[np.float64]]:
     """NumPy reference of the compiled corner penalty
-    (:func:`kneegui.smoothing.quality_kernel.corner_ratio_penalty`).
+    (:func:`kneegui.meshopt.quality_kernel.corner_ratio_penalty`).
 
     Returns ``(penalty, gradient (S, 3))``; ``(inf, zeros)`` when a corner is not positive.
     """

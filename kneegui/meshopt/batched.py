@@ -3,7 +3,7 @@
 The nodes of one colour share no element, so their local problems are independent: each node
 keeps its own simplex, and the objective of every node is evaluated in one vectorised call. The
 objective and the acceptance rules are those of the per-node ``scipy.optimize.minimize`` path
-(:func:`kneegui.smoothing.smoother._optimise_node`); the simplex moves are scipy's
+(:func:`kneegui.meshopt.smoother._optimise_node`); the simplex moves are scipy's
 (reflection 1, expansion 2, contraction 1/2, shrink 1/2).
 
 Local problem of a node at ``x0`` moving by ``delta``: every corner determinant is affine,
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.smoothing.topology import ELEMENT_EDGES
+from kneegui.meshopt.topology import ELEMENT_EDGES
 
 _W = 8  # corner determinants per element, padded (hex has 8)
 _K = 4  # node edges per element, padded (a pyramid apex has 4)
