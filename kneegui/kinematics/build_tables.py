@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kneegui.kinematics.tables import TABLES_DIR
+from kneegui.setup.kinematic_tables import TABLES_DIR
 
 WALKER_SOURCE = (
     "Walker et al. 1988 (in vitro), as quoted in ALGORITHM.md section 2: "
@@ -142,7 +142,7 @@ def build(outdir: Path = TABLES_DIR) -> list[dict[str, str]]:
 
 def main() -> None:
     """Regenerate the tables and print the values at the usual angles."""
-    from kneegui.kinematics.tables import resolve_table, shipped_tables
+    from kneegui.setup.kinematic_tables import resolve_table, shipped_tables
 
     build()
     shipped_tables.cache_clear()

@@ -8,9 +8,14 @@ import numpy as np
 import pytest
 
 from kneegui.errors import SetupError
-from kneegui.kinematics import read_table_csv, resolve_table, shipped_tables, table_names
 from kneegui.kinematics.build_tables import build, walker1988_internal_rotation
-from kneegui.kinematics.tables import TABLES_DIR
+from kneegui.setup.kinematic_tables import (
+    TABLES_DIR,
+    read_table_csv,
+    resolve_table,
+    shipped_tables,
+    table_names,
+)
 
 
 def test_walker_exact_cubic():
