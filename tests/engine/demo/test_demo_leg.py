@@ -408,14 +408,6 @@ def test_write_demo_is_byte_identical_and_reads_back(tmp_path):
     assert abs(measure_flexion(model.coords, setup) - 9.0) <= 1.0
 
 
-def test_cli_demo_writes_both_files(tmp_path):
-    from kneegui.cli import main
-
-    assert main(["demo", str(tmp_path), "--elements", "3000", "--side", "left"]) == 0
-    assert (tmp_path / "demo_leg.k").stat().st_size > 0
-    assert '"side": "left"' in (tmp_path / "demo_leg.setup.json").read_text()
-
-
 def test_bad_arguments_raise_typed_errors():
     with pytest.raises(KneeguiError):
         generate_demo_leg(20_000, side="up")
