@@ -42,7 +42,7 @@ QUICK_SIZE = 2_000
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    """Options of ``python -m bench`` (also used by ``kneegui bench``)."""
+    """Options of ``python -m bench``."""
     parser = parser or argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     parser.add_argument(
         "--quick",
@@ -257,7 +257,7 @@ def write_outputs(results: dict[str, Any], out_dir: Path, quick: bool) -> dict[s
 
 
 def run_from_args(args: argparse.Namespace, log=print) -> int:
-    """Run and write; the entry of both ``python -m bench`` and ``kneegui bench``."""
+    """Run and write; the entry of ``python -m bench``."""
     out_dir = args.out_dir
     if out_dir is None:
         out_dir = ROOT / "bench" / "results" / "quick" if args.quick else ROOT

@@ -459,7 +459,7 @@ def summary_matrix(results: dict, key: str, title: str, pattern: str) -> list[st
 
 METHOD_NOTES = """## How it is measured
 
-- **Command.** `python -m bench` (or `kneegui bench`) regenerates this file,
+- **Command.** `python -m bench` (from the source tree) regenerates this file,
   bench/results/benchmarks.json (every raw run time, the configuration and the machine) and the
   plots. Each size and the baseline comparison run in a fresh Python process with a wall-clock
   budget (the whole run stays under 14.5 minutes; the largest model runs last with the time

@@ -25,9 +25,10 @@ the foot going posterior, is flexion, on either side.
 from __future__ import annotations
 
 import csv
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,8 +38,61 @@ from kneegui.geometry.circle_fit import CircleFit, fit_outer_profile
 from kneegui.geometry.transforms import unit
 from kneegui.resources import RESOURCES_DIR
 
-if TYPE_CHECKING:
-    from kneegui.setup.format import JointSetup
+
+class TrackedPoint(Protocol):
+    """An axis landmark that can be found in any pose: a node, or a point riding on a bone."""
+
+    def position(self, coords: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Where the point is in the node coordinates ``coords`` (N, 3)."""
+        ...
+
+
+class KneeLandmarks(Protocol):
+    """What the axes read from a joint setup; :class:`kneegui.setup.format.JointSetup` is one.
+
+    Declared here rather than imported so that geometry stays below the setup in the engine's
+    layer order (docs/architecture.md): the setup builds on geometry, never the reverse.
+    """
+
+    @property
+    def n_nodes(self) -> int:
+        """Node count of the model the landmarks index."""
+        ...
+
+    @property
+    def side_sign(self) -> int:
+        """+1 for a right knee, -1 for a left one."""
+        ...
+
+    @property
+    def lateral_condyle(self) -> NDArray[np.int64]:
+        """Node indices of the lateral posterior condyle set."""
+        ...
+
+    @property
+    def medial_condyle(self) -> NDArray[np.int64]:
+        """Node indices of the medial posterior condyle set."""
+        ...
+
+    @property
+    def femur_axis(self) -> tuple[TrackedPoint, TrackedPoint]:
+        """``(proximal, distal)`` points of the femoral anatomical axis."""
+        ...
+
+    @property
+    def tibia_axis(self) -> tuple[TrackedPoint, TrackedPoint]:
+        """``(proximal, distal)`` points of the tibial anatomical axis."""
+        ...
+
+    @property
+    def lr_axis(self) -> tuple[TrackedPoint, TrackedPoint]:
+        """``(proximal, distal)`` points of the longitudinal-rotation axis."""
+        ...
+
+    @property
+    def segment_nodes(self) -> Mapping[str, NDArray[np.int64]]:
+        """Node indices of each rigid group (``femur``, ``tibia``, ``patella``)."""
+        ...
 
 
 @lru_cache(maxsize=1)
@@ -92,8 +146,8 @@ class JointAxes:
         Centroid of the patella nodes (None without a patella role).
     warnings : tuple of str
         Fit quality findings (radius outside limits, RMS too large, short arc, ...).
-    setup : JointSetup
-        The setup the axes were computed from.
+    setup : KneeLandmarks
+        The setup the axes were computed from (a :class:`~kneegui.setup.format.JointSetup`).
     """
 
     lateral_fit: CircleFit
@@ -112,7 +166,7 @@ class JointAxes:
     initial_flexion_deg: float
     patella_center: NDArray[np.float64] | None
     warnings: tuple[str, ...]
-    setup: JointSetup = field(repr=False, compare=False)
+    setup: KneeLandmarks = field(repr=False, compare=False)
 
     @property
     def left(self) -> NDArray[np.float64]:
@@ -216,7 +270,7 @@ class _LandmarkPositions:
     lr: tuple[NDArray[np.float64], NDArray[np.float64]]
 
 
-def _positions(coords: NDArray[np.float64], setup: JointSetup) -> _LandmarkPositions:
+def _positions(coords: NDArray[np.float64], setup: KneeLandmarks) -> _LandmarkPositions:
     coords = np.asarray(coords, dtype=np.float64)
     if coords.shape != (setup.n_nodes, 3):
         raise GeometryError(
@@ -227,7 +281,7 @@ def _positions(coords: NDArray[np.float64], setup: JointSetup) -> _LandmarkPosit
     if not (np.all(np.isfinite(lat)) and np.all(np.isfinite(med))):
         raise GeometryError("non-finite condyle node coordinates")
 
-    def pair(points):
+    def pair(points: tuple[TrackedPoint, TrackedPoint]):
         a, b = (p.position(coords) for p in points)
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
             raise GeometryError("non-finite axis landmark coordinates")
@@ -238,16 +292,17 @@ def _positions(coords: NDArray[np.float64], setup: JointSetup) -> _LandmarkPosit
     )
 
 
-def measure_flexion(coords: ArrayLike, reference: JointSetup | JointAxes) -> float:
+def measure_flexion(coords: ArrayLike, reference: KneeLandmarks | JointAxes) -> float:
     """Knee flexion (degrees) of a pose.
 
     Parameters
     ----------
     coords : (N, 3) array_like of float
         Node coordinates of the model (initial or posed).
-    reference : JointSetup or JointAxes
-        The setup (or axes computed from it) naming the landmarks. The landmarks are read from
-        ``coords`` (coordinate landmarks follow their bone), so the measure is that of the pose.
+    reference : KneeLandmarks or JointAxes
+        The setup (a :class:`~kneegui.setup.format.JointSetup`), or axes computed from it, naming
+        the landmarks. The landmarks are read from ``coords`` (coordinate landmarks follow their
+        bone), so the measure is that of the pose.
 
     Returns
     -------
@@ -322,15 +377,15 @@ def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
     )
 
 
-def compute_joint_axes(model_coords: ArrayLike, setup: JointSetup) -> JointAxes:
+def compute_joint_axes(model_coords: ArrayLike, setup: KneeLandmarks) -> JointAxes:
     """Fit the condyle circles and build the F-E, L-R and anatomical axes.
 
     Parameters
     ----------
     model_coords : (N, 3) array_like of float
         Node coordinates (mm) of the model the setup was validated on (or of a pose of it).
-    setup : JointSetup
-        Landmarks and side.
+    setup : KneeLandmarks
+        Landmarks and side: a :class:`~kneegui.setup.format.JointSetup`.
 
     Returns
     -------

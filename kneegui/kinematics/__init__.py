@@ -1,4 +1,9 @@
-"""Bone kinematics: kinematic tables and rigid posing of the femur, tibia and patella."""
+"""Bone kinematics: rigid posing of the femur, tibia and patella to a target flexion.
+
+The kinematic tables that drive the coupled rotations are part of the joint setup
+(:mod:`kneegui.setup.kinematic_tables`); this package turns a setup and its axes into bone
+transforms.
+"""
 
 from kneegui.kinematics.posing import (
     BonePose,
@@ -7,25 +12,11 @@ from kneegui.kinematics.posing import (
     pose_bones,
     solve_bone_pose,
 )
-from kneegui.kinematics.tables import (
-    QUANTITIES,
-    KinematicTable,
-    read_table_csv,
-    resolve_table,
-    shipped_tables,
-    table_names,
-)
 
 __all__ = [
-    "QUANTITIES",
     "BonePose",
-    "KinematicTable",
     "apply_bone_transforms",
     "bone_transforms",
     "pose_bones",
-    "read_table_csv",
-    "resolve_table",
-    "shipped_tables",
     "solve_bone_pose",
-    "table_names",
 ]

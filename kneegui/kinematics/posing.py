@@ -12,7 +12,7 @@ own proximal-distal axis (through its flexed centroid, along the flexed femoral 
 by ``s * (T(phi) - T(phi0))``. ``phi0`` is the measured initial flexion and ``s`` is +1 for a right
 knee, -1 for a left one; the F-E axis is directed lateral -> medial and the L-R and patellar axes
 distal -> proximal, so with ``s`` every sign mirrors for a left knee (see
-:mod:`kneegui.kinematics.tables` for the convention).
+:mod:`kneegui.setup.kinematic_tables` for the convention).
 
 When the femur is the moving segment, the femur (and the patella, which rides on it) take the
 inverse of the tibia's relative motion and the tibia stays: the relative pose is the same.
@@ -21,7 +21,6 @@ inverse of the tibia's relative motion and the tibia stays: the relative pose is
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,10 +28,8 @@ from numpy.typing import NDArray
 from kneegui.errors import GeometryError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, flexion_angle_deg
 from kneegui.geometry.transforms import RigidTransform
-
-if TYPE_CHECKING:
-    from kneegui.model import Model
-    from kneegui.setup.format import JointSetup
+from kneegui.model import Model
+from kneegui.setup.format import JointSetup
 
 #: Newton iteration on the F-E rotation: stop below this flexion error (degrees).
 FLEXION_TOLERANCE_DEG = 1e-9

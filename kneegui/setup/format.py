@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from kneegui.errors import SetupError
 from kneegui.geometry.transforms import best_fit_transform
-from kneegui.kinematics.tables import QUANTITIES, KinematicTable, resolve_table
 from kneegui.model import Model
+from kneegui.setup.kinematic_tables import QUANTITIES, KinematicTable, resolve_table
 
 FORMAT_NAME = "kneegui-setup"
 FORMAT_VERSION = 1

@@ -1,4 +1,10 @@
-"""House rule 1: the engine never imports Qt, VTK or pyvista."""
+"""House rule 1: the engine never imports Qt, VTK or pyvista.
+
+The run-time half of the check: importing every engine module loads no GUI module, whatever the
+route (a third-party library pulling one in, an ``importlib`` call). The static half, the import
+contract over every import statement and the engine's layer order, is
+tests/engine/test_import_contract.py.
+"""
 
 import subprocess
 import sys

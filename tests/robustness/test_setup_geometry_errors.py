@@ -7,13 +7,12 @@ import copy
 import numpy as np
 import pytest
 
+from kneegui import demo
 from kneegui.errors import GeometryError, KneeguiError, SetupError
 from kneegui.geometry.axes import compute_joint_axes
 from kneegui.reposition import Repositioner
 from kneegui.setup import load_setup
 from kneegui.setup.synthetic import build_synthetic_knee
-
-demo = pytest.importorskip("kneegui.demo")
 
 
 @pytest.fixture(scope="module")

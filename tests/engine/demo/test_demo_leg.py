@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import time
 
 import numpy as np
 import pytest
@@ -22,8 +21,18 @@ from kneegui.quality import compute_quality
 from kneegui.setup.format import ROLES, load_setup
 
 #: Requests whose meshes must meet the quality bounds: the smallest accepted request (the coarsest
-#: mesh), requests between it and the default (repaired meshes), the default and finer ones.
-SIZES_WITH_QUALITY = (MIN_ELEMENTS, 2_000, 8_000, 10_000, 12_000, 20_000, 50_000, 100_000)
+#: mesh), requests between it and the default (repaired meshes), the default and finer ones (the
+#: finer ones take seconds each: ``slow``).
+SIZES_WITH_QUALITY = (
+    MIN_ELEMENTS,
+    2_000,
+    8_000,
+    10_000,
+    12_000,
+    20_000,
+    pytest.param(50_000, marks=pytest.mark.slow),
+    pytest.param(100_000, marks=pytest.mark.slow),
+)
 
 
 @functools.cache
@@ -57,6 +66,7 @@ def test_default_size_is_near_the_papers_model(leg):
     assert leg.stats["solids"] == n
 
 
+@pytest.mark.slow
 def test_size_option_scales_the_same_anatomy():
     small = _leg(2_000)
     large = _leg(100_000)
@@ -397,14 +407,6 @@ def test_write_demo_is_byte_identical_and_reads_back(tmp_path):
     assert abs(measure_flexion(model.coords, setup) - 9.0) <= 1.0
 
 
-def test_cli_demo_writes_both_files(tmp_path):
-    from kneegui.cli import main
-
-    assert main(["demo", str(tmp_path), "--elements", "3000", "--side", "left"]) == 0
-    assert (tmp_path / "demo_leg.k").stat().st_size > 0
-    assert '"side": "left"' in (tmp_path / "demo_leg.setup.json").read_text()
-
-
 def test_bad_arguments_raise_typed_errors():
     with pytest.raises(KneeguiError):
         generate_demo_leg(20_000, side="up")
@@ -412,17 +414,10 @@ def test_bad_arguments_raise_typed_errors():
         generate_demo_leg(10)
 
 
-def test_default_generation_is_fast():
-    t0 = time.perf_counter()
-    generate_demo_leg(20_000)
-    assert time.perf_counter() - t0 < 5.0
-
-
 @pytest.mark.slow
-def test_million_element_model_in_under_two_minutes():
-    t0 = time.perf_counter()
+def test_million_element_model_meets_the_bounds():
+    """The generation time of this size is measured by the benchmark (``generate_s``)."""
     leg = generate_demo_leg(1_000_000)
-    assert time.perf_counter() - t0 < 120.0
     assert len(leg.model.blocks["hex8"]) >= 1_000_000 * 0.9
     assert "quality_problems" not in leg.stats
     q = compute_quality(leg.model.coords, leg.model.blocks)

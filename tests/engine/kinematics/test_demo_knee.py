@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kneegui import demo
 from kneegui.geometry import compute_joint_axes, measure_flexion
 from kneegui.kinematics import pose_bones, solve_bone_pose
 from kneegui.setup import load_setup, suggest_condyle_nodes, suggest_roles, suggest_setup
 
-demo = pytest.importorskip("kneegui.demo")
 if not hasattr(demo, "generate_demo_leg"):
     pytest.skip("kneegui.demo.generate_demo_leg is not there yet", allow_module_level=True)
 

@@ -5,14 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-demo = pytest.importorskip("kneegui.demo")
-
-from kneegui.meshopt import (  # noqa: E402
+from kneegui import demo
+from kneegui.meshopt import (
     degraded_elements,
     smooth_posed_model,
     smoothing_free_nodes,
 )
-from kneegui.quality import compute_quality, summarize_quality  # noqa: E402
+from kneegui.quality import compute_quality, summarize_quality
 
 SOFT = ("flesh", "ligament", "meniscus", "tendon", "capsule")
 BONES = ("femur", "tibia", "fibula", "patella", "fixed")

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from kneegui import demo
 from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.setup import load_setup
-
-demo = pytest.importorskip("kneegui.demo")
 
 
 @pytest.fixture(scope="session")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kneegui import demo as demo_module
 from kneegui.errors import SetupError
 from kneegui.geometry.axes import measure_flexion
 from kneegui.meshopt.topology import boundary_node_mask
@@ -14,8 +15,6 @@ from kneegui.reposition.checks import inside_closed_surface, penetrating, surfac
 from kneegui.reposition.relax import RelaxOptions
 from kneegui.reposition.skin_contours import build_skin_contours, count_contour_crossings
 from kneegui.setup import load_setup
-
-demo_module = pytest.importorskip("kneegui.demo")
 
 ANGLES = (0.0, 30.0, 60.0, 90.0, 120.0)
 

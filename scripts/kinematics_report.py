@@ -1,4 +1,4 @@
-"""Measure the bone kinematics on the demo leg: ``python -m kneegui.kinematics.report``.
+"""Measure the bone kinematics on the demo leg: ``python scripts/kinematics_report.py``.
 
 Prints the condyle fits, the initial flexion, and for each target flexion the re-measured
 flexion, the applied coupled rotations, the worst relative change of intra-bone distances and the
@@ -14,6 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from kneegui.demo import generate_demo_leg
+from kneegui.geometry.axes import compute_joint_axes, measure_flexion
+from kneegui.kinematics.posing import apply_bone_transforms, solve_bone_pose
+from kneegui.setup.format import load_setup
+from kneegui.setup.landmarks import suggest_setup
+
 TARGETS = (-5.0, 0.0, 30.0, 60.0, 90.0, 120.0, 140.0)
 
 
@@ -27,12 +33,6 @@ def _max_relative_distance_change(a: np.ndarray, b: np.ndarray, sample: int = 40
 
 def kinematics_report(elements: int = 20000, side: str = "right") -> dict[str, Any]:
     """Pose the demo leg at :data:`TARGETS` and collect the figures."""
-    from kneegui.demo import generate_demo_leg
-    from kneegui.geometry.axes import compute_joint_axes, measure_flexion
-    from kneegui.kinematics.posing import apply_bone_transforms, solve_bone_pose
-    from kneegui.setup.format import load_setup
-    from kneegui.setup.landmarks import suggest_setup
-
     leg = generate_demo_leg(elements=elements, side=side)
     t0 = time.perf_counter()
     setup = load_setup(leg.setup, leg.model)

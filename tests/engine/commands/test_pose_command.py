@@ -12,8 +12,6 @@ import pytest
 
 from kneegui.io.lsdyna import read_deck
 
-pytest.importorskip("kneegui.demo")
-
 
 def kneegui(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(

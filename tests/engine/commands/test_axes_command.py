@@ -8,10 +8,9 @@ import json
 import pytest
 
 from kneegui.cli import main
+from kneegui.io import lsdyna
 from kneegui.setup import save_setup
 from kneegui.setup.synthetic import build_synthetic_knee, random_rotation
-
-lsdyna = pytest.importorskip("kneegui.io.lsdyna")
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """Write the shipped kinematic tables in ``resources/kinematics/`` from their published formulas.
 
-Run ``python -m kneegui.kinematics.build_tables`` to regenerate them (and print the values quoted
+Run ``python scripts/build_kinematic_tables.py`` to regenerate them (and print the values quoted
 in docs/kinematics.md). Each row carries its source.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kneegui.kinematics.tables import TABLES_DIR
+from kneegui.setup.kinematic_tables import TABLES_DIR, resolve_table, shipped_tables
 
 WALKER_SOURCE = (
     "Walker et al. 1988 (in vitro), as quoted in ALGORITHM.md section 2: "
@@ -142,8 +142,6 @@ def build(outdir: Path = TABLES_DIR) -> list[dict[str, str]]:
 
 def main() -> None:
     """Regenerate the tables and print the values at the usual angles."""
-    from kneegui.kinematics.tables import resolve_table, shipped_tables
-
     build()
     shipped_tables.cache_clear()
     angles = [0, 30, 60, 90, 120, 140]
