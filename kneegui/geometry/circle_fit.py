@@ -5,6 +5,10 @@ centred and scaled for conditioning) gives the start; a geometric refinement (Le
 on the orthogonal distances ``|p - c| - r``, :func:`scipy.optimize.least_squares`) gives the
 answer. The geometric fit is unbiased for noisy points on a short arc, where Kåsa's radius is
 known to shrink.
+
+:func:`fit_circles_2d_subsets` fits many subsets of one point set at once (batched Gauss-Newton
+from a common start), for the resampling in :mod:`kneegui.geometry.axis_sensitivity`; it is
+checked against :func:`fit_circle_2d` subset by subset.
 """
 
 from __future__ import annotations
@@ -130,62 +134,73 @@ def fit_circle_2d(points2d: ArrayLike) -> CircleFit:
     )
 
 
-def fit_outer_profile(
-    points2d: ArrayLike,
-    rms_trigger: float = 0.5,
-    tolerance: float = 0.25,
-    max_iterations: int = 50,
-) -> tuple[CircleFit, NDArray[np.bool_]]:
-    """Circle through the outer boundary of a projected point cloud, when that is what fits.
+#: Gauss-Newton iterations allowed in :func:`fit_circles_2d_subsets` (it converges in 3-6 from a
+#: full-set fit; more means a subset whose circle is not determined).
+SUBSET_FIT_MAX_ITERATIONS = 50
 
-    A condyle node set picked as a surface patch (not only its sagittal outline) projects to a
-    filled crescent: the nodes on the condyle's rounded sides fall inside the circle and pull a
-    plain fit in. The paper fits the circle to "the boundary nodes". This first fits all points;
-    if their RMS exceeds ``rms_trigger``, it drops the points more than ``tolerance`` inside the
-    current circle and refits, until the kept set no longer changes. The outer fit is used only
-    if its RMS is within ``tolerance`` (a clean outline, not the outer half of a noisy cloud) and
-    at most half the plain fit's, it keeps at least 10 % of the points (and 5) and half the arc;
-    otherwise the plain fit is returned.
+
+def fit_circles_2d_subsets(
+    points2d: ArrayLike, keep: ArrayLike, start: CircleFit
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Geometric least-squares circles of many subsets of one point set, in one batch.
+
+    Each subset's circle minimises the sum of squared orthogonal distances ``|p - c| - r`` of its
+    points, as :func:`fit_circle_2d` does; all subsets iterate together (Gauss-Newton with a
+    small Levenberg-Marquardt damping, vectorised over the subsets), starting from ``start``
+    (usually the fit of all the points, which every subset's answer is near).
 
     Parameters
     ----------
     points2d : (M, 2) array_like of float
-        Projected points (mm).
-    rms_trigger, tolerance : float
-        In the units of the points (mm).
-    max_iterations : int
-        Bound on the refits.
+        All points (mm).
+    keep : (S, M) array_like of bool
+        Which points each of the S subsets holds (at least 3 each).
+    start : CircleFit
+        Starting circle.
 
     Returns
     -------
-    fit : CircleFit
-        The fit used.
-    used : (M,) ndarray of bool
-        Which points it was fitted to.
+    centers : (S, 2) ndarray of float
+    radii : (S,) ndarray of float
+
+    Raises
+    ------
+    GeometryError
+        A subset with fewer than 3 points, or one whose fit does not converge.
     """
     pts = np.asarray(points2d, dtype=np.float64)
-    full = fit_circle_2d(pts)
-    everything = np.ones(len(pts), dtype=bool)
-    if full.rms <= rms_trigger:
-        return full, everything
-    fit, keep = full, everything
-    min_kept = max(5, int(np.ceil(0.1 * len(pts))))
-    for _ in range(max_iterations):
-        new_keep = fit.residuals(pts) >= -tolerance
-        if new_keep.sum() < min_kept:
-            return full, everything
-        if np.array_equal(new_keep, keep):
+    w = np.asarray(keep, dtype=bool)
+    if pts.ndim != 2 or pts.shape[1] != 2 or w.ndim != 2 or w.shape[1] != len(pts):
+        raise GeometryError(
+            f"subset circle fit: points {pts.shape} and subsets {w.shape} do not match"
+        )
+    if (w.sum(axis=1) < 3).any():
+        raise GeometryError("subset circle fit: a subset has fewer than 3 points")
+    wf = w.astype(np.float64)
+    n_sub = len(w)
+    params = np.tile([start.center[0], start.center[1], start.radius], (n_sub, 1))
+    scale = max(float(start.radius), 1e-300)
+    active = np.ones(n_sub, dtype=bool)
+    for _ in range(SUBSET_FIT_MAX_ITERATIONS):
+        p = params[active]
+        dx = pts[None, :, 0] - p[:, 0, None]
+        dy = pts[None, :, 1] - p[:, 1, None]
+        dist = np.maximum(np.hypot(dx, dy), 1e-300)
+        res = dist - p[:, 2, None]
+        jac = np.stack([-dx / dist, -dy / dist, -np.ones_like(dist)], axis=2)  # (S, M, 3)
+        wj = jac * wf[active][:, :, None]
+        normal = np.einsum("smi,smj->sij", wj, jac)
+        normal += 1e-12 * np.eye(3) * np.trace(normal, axis1=1, axis2=2)[:, None, None]
+        grad = np.einsum("smi,sm->si", wj, res)
+        step = -np.linalg.solve(normal, grad[:, :, None])[:, :, 0]
+        params[active] = p + step
+        done = np.abs(step).max(axis=1) <= 1e-12 * scale
+        idx = np.flatnonzero(active)
+        active[idx[done]] = False
+        if not active.any():
             break
-        keep = new_keep
-        try:
-            fit = fit_circle_2d(pts[keep])
-        except GeometryError:
-            return full, everything
-    # a clean outline (not just the outer half of a noisy cloud) and a real improvement
-    if (
-        fit.rms <= tolerance
-        and fit.rms <= 0.5 * full.rms
-        and fit.arc_span_deg >= 0.5 * full.arc_span_deg
-    ):
-        return fit, keep
-    return full, everything
+    if active.any() or not np.all(np.isfinite(params)):
+        raise GeometryError("subset circle fit: did not converge (an arc too short or too noisy)")
+    centers = params[:, :2].copy()
+    radii = np.abs(params[:, 2])
+    return centers, radii
