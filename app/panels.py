@@ -289,12 +289,17 @@ class LandmarkPanel(QWidget):
                     f"R = {fit.radius:.2f}{pm} mm, RMS = {fit.rms:.3f} mm, "
                     f"arc {fit.arc_span_deg:.0f}°"
                 )
-            self.labels["fe_spread"].setText(
-                "– (too few nodes)"
-                if spread is None
-                else f"{spread.direction_spread_deg:.2f}°, centres "
-                f"{spread.lateral_center_spread_mm:.2f} / {spread.medial_center_spread_mm:.2f} mm"
-            )
+            if spread is None:
+                text = "– (too few nodes)"
+            elif not np.isfinite(spread.direction_spread_deg):
+                text = f"unstable: {spread.n_failed} of {spread.settings.n_subsets} fits failed"
+            else:
+                text = (
+                    f"{spread.direction_spread_deg:.2f}°, centres "
+                    f"{spread.lateral_center_spread_mm:.2f} / "
+                    f"{spread.medial_center_spread_mm:.2f} mm"
+                )
+            self.labels["fe_spread"].setText(text)
             self.labels["flexion"].setText(f"{axes.initial_flexion_deg:.1f}°")
         else:
             for key in ("lateral_fit", "medial_fit", "fe_spread", "flexion"):

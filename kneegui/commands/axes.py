@@ -43,13 +43,20 @@ def format_sensitivity(spread: dict[str, Any] | None) -> str:
     """One line of :meth:`AxisSensitivity.to_dict` (None: not measured)."""
     if spread is None:
         return "F-E axis spread: not measured (too few condyle nodes to leave a fifth out)"
+    how = (
+        f"{spread['percentile']:g}th percentile over {spread['n_subsets']} fits each leaving out "
+        f"{100 * spread['leave_out_fraction']:g} % of each condyle's nodes"
+    )
+    failed = spread.get("failed_subsets", 0)
+    if failed:
+        how += f"; {failed} gave no determined circle"
+    if spread["direction_spread_deg"] is None:
+        return f"F-E axis spread: unstable ({how})"
     return (
         f"F-E axis spread: {spread['direction_spread_deg']:.2f} deg, centres "
         f"{spread['lateral_center_spread_mm']:.2f} / {spread['medial_center_spread_mm']:.2f} mm, "
         f"radii {spread['lateral_radius_spread_mm']:.2f} / "
-        f"{spread['medial_radius_spread_mm']:.2f} mm (lateral / medial; "
-        f"{spread['percentile']:g}th percentile over {spread['n_subsets']} fits each leaving out "
-        f"{100 * spread['leave_out_fraction']:g} % of each condyle's nodes)"
+        f"{spread['medial_radius_spread_mm']:.2f} mm (lateral / medial; {how})"
     )
 
 

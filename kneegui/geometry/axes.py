@@ -336,6 +336,7 @@ def _sensitivity(pos: _LandmarkPositions, frame: _SagittalFrame) -> AxisSensitiv
             frame.normal,
             frame.origin,
             fits=frame.fits,
+            frame_refinements=SAGITTAL_REFINEMENTS,
         )
     except GeometryError:
         return None

@@ -6,8 +6,8 @@ on the orthogonal distances ``|p - c| - r``, :func:`scipy.optimize.least_squares
 answer. The geometric fit is unbiased for noisy points on a short arc, where Kåsa's radius is
 known to shrink.
 
-:func:`fit_circles_2d_subsets` fits many subsets of one point set at once (batched Gauss-Newton
-from a common start), for the resampling in :mod:`kneegui.geometry.axis_sensitivity`; it is
+:func:`fit_circles_2d_subsets` fits many subsets of one point set at once (the same two
+stages, batched), for the resampling in :mod:`kneegui.geometry.axis_sensitivity`; it is
 checked against :func:`fit_circle_2d` subset by subset.
 """
 
@@ -134,43 +134,93 @@ def fit_circle_2d(points2d: ArrayLike) -> CircleFit:
     )
 
 
-#: Gauss-Newton iterations allowed in :func:`fit_circles_2d_subsets` (it converges in 3-6 from a
-#: full-set fit; more means a subset whose circle is not determined).
+def _normal_equations(params, pts, w):
+    """Gauss-Newton normal matrix (S, 3, 3), gradient (S, 3) and cost (S,) of weighted circle
+    fits: residual ``|p - c| - r``, Jacobian rows ``(-dx/dist, -dy/dist, -1)``.
+    """
+    dx = pts[:, :, 0] - params[:, 0, None]
+    dy = pts[:, :, 1] - params[:, 1, None]
+    dist = np.maximum(np.hypot(dx, dy), 1e-300)
+    res = dist - params[:, 2, None]
+    cols = np.stack([-dx / dist, -dy / dist, -np.ones_like(dist), res], axis=2)  # (S, M, 4)
+    # one batched product gives J^T W J and J^T W r (a batched einsum is several times slower)
+    prod = (cols[:, :, :3] * w[:, :, None]).transpose(0, 2, 1) @ cols  # (S, 3, 4)
+    return prod[:, :, :3], prod[:, :, 3], (w * res**2).sum(1)
+
+
+#: Levenberg-Marquardt iterations allowed in :func:`fit_circles_2d_subsets` (it converges in
+#: 3-8 from its algebraic start; more means a subset whose circle is not determined).
 SUBSET_FIT_MAX_ITERATIONS = 50
+#: Convergence of :func:`fit_circles_2d_subsets`: the last step, relative to the radius.
+SUBSET_FIT_TOLERANCE = 1e-10
+
+
+def _algebraic_starts(pts: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Kåsa circles ``(cx, cy, r)`` (S, 3) of weighted point sets (S, M, 2), centred and scaled
+    per set for conditioning (as :func:`_algebraic_start`); NaN rows where there is none."""
+    sw = w.sum(1)
+    mean = (w[:, :, None] * pts).sum(1) / sw[:, None]
+    q = pts - mean[:, None, :]
+    q2 = (q**2).sum(2)
+    scale = np.sqrt((w * q2).sum(1) / sw)
+    bad = ~(scale > 0)  # all points of a subset coincide
+    scale = np.where(bad, 1.0, scale)
+    q = q / scale[:, None, None]
+    q2 = q2 / scale[:, None] ** 2
+    a = np.concatenate([q, np.ones_like(q[:, :, :1])], axis=2)  # (S, M, 3)
+    wa = a * w[:, :, None]
+    lhs = wa.transpose(0, 2, 1) @ a
+    rhs = -(wa * q2[:, :, None]).sum(1)
+    lhs += 1e-12 * np.eye(3) * np.trace(lhs, axis1=1, axis2=2)[:, None, None]
+    lhs[bad] = np.eye(3)  # coincident points: any solvable system, the row becomes NaN below
+    d, e, f = np.linalg.solve(lhs, rhs[:, :, None])[:, :, 0].T
+    r2 = 0.25 * (d**2 + e**2) - f
+    r2 = np.where((r2 > 0) & ~bad, r2, np.nan)  # no real circle through the subset: NaN
+    centre = mean + scale[:, None] * np.column_stack([-0.5 * d, -0.5 * e])
+    return np.column_stack([centre, scale * np.sqrt(r2)])
 
 
 def fit_circles_2d_subsets(
-    points2d: ArrayLike, keep: ArrayLike, start: CircleFit
+    points2d: ArrayLike,
+    keep: ArrayLike,
+    start: ArrayLike | None = None,
+    tolerance: float = SUBSET_FIT_TOLERANCE,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Geometric least-squares circles of many subsets of one point set, in one batch.
+    """Geometric least-squares circles of many subsets of a point set, in one batch.
 
     Each subset's circle minimises the sum of squared orthogonal distances ``|p - c| - r`` of its
-    points, as :func:`fit_circle_2d` does; all subsets iterate together (Gauss-Newton with a
-    small Levenberg-Marquardt damping, vectorised over the subsets), starting from ``start``
-    (usually the fit of all the points, which every subset's answer is near).
+    points, as :func:`fit_circle_2d` does: from a start (its algebraic Kåsa circle unless given)
+    it is refined by Levenberg-Marquardt (a damping per subset), all subsets together.
 
     Parameters
     ----------
-    points2d : (M, 2) array_like of float
-        All points (mm).
+    points2d : (M, 2) or (S, M, 2) array_like of float
+        The points (mm): one set shared by the subsets, or one projection per subset.
     keep : (S, M) array_like of bool
         Which points each of the S subsets holds (at least 3 each).
-    start : CircleFit
-        Starting circle.
+    start : (S, 3) array_like of float, optional
+        Starting circles as rows ``(cx, cy, r)`` (e.g. the fit of all the points); a row with a
+        NaN starts from its algebraic circle.
+    tolerance : float
+        A subset is converged when its last step is below ``tolerance`` times its radius.
 
     Returns
     -------
     centers : (S, 2) ndarray of float
     radii : (S,) ndarray of float
+        NaN for a subset whose circle is not determined (nearly collinear points, or no
+        convergence in ``SUBSET_FIT_MAX_ITERATIONS``).
 
     Raises
     ------
     GeometryError
-        A subset with fewer than 3 points, or one whose fit does not converge.
+        Shapes that do not match, or a subset with fewer than 3 points.
     """
-    pts = np.asarray(points2d, dtype=np.float64)
     w = np.asarray(keep, dtype=bool)
-    if pts.ndim != 2 or pts.shape[1] != 2 or w.ndim != 2 or w.shape[1] != len(pts):
+    pts = np.asarray(points2d, dtype=np.float64)
+    if pts.ndim == 2:
+        pts = np.broadcast_to(pts, (len(w), *pts.shape))
+    if pts.ndim != 3 or pts.shape[2] != 2 or w.ndim != 2 or pts.shape[:2] != w.shape:
         raise GeometryError(
             f"subset circle fit: points {pts.shape} and subsets {w.shape} do not match"
         )
@@ -178,29 +228,57 @@ def fit_circles_2d_subsets(
         raise GeometryError("subset circle fit: a subset has fewer than 3 points")
     wf = w.astype(np.float64)
     n_sub = len(w)
-    params = np.tile([start.center[0], start.center[1], start.radius], (n_sub, 1))
-    scale = max(float(start.radius), 1e-300)
-    active = np.ones(n_sub, dtype=bool)
+    if start is None:
+        params = np.full((n_sub, 3), np.nan)
+    else:
+        params = np.array(start, dtype=np.float64).reshape(n_sub, 3)
+    cold = ~np.isfinite(params).all(axis=1)
+    if cold.any():
+        params[cold] = _algebraic_starts(pts[cold], wf[cold])
+    # collinear subsets (the smaller principal variance vanishing) have no circle
+    sw = wf.sum(1)
+    q = pts - ((wf[:, :, None] * pts).sum(1) / sw[:, None])[:, None, :]
+    cxx, cyy = (wf * q[:, :, 0] ** 2).sum(1), (wf * q[:, :, 1] ** 2).sum(1)
+    cxy = (wf * q[:, :, 0] * q[:, :, 1]).sum(1)
+    half, det = 0.5 * (cxx + cyy), cxx * cyy - cxy**2
+    major = half + np.sqrt(np.maximum(half**2 - det, 0.0))
+    minor = det / np.maximum(major, 1e-300)
+    params[~(minor > 1e-14 * major)] = np.nan
+    active = np.isfinite(params).all(axis=1)
+    normal, grad, cost = _normal_equations(params, pts, wf)
+    damping = np.full(n_sub, 1e-3)
     for _ in range(SUBSET_FIT_MAX_ITERATIONS):
-        p = params[active]
-        dx = pts[None, :, 0] - p[:, 0, None]
-        dy = pts[None, :, 1] - p[:, 1, None]
-        dist = np.maximum(np.hypot(dx, dy), 1e-300)
-        res = dist - p[:, 2, None]
-        jac = np.stack([-dx / dist, -dy / dist, -np.ones_like(dist)], axis=2)  # (S, M, 3)
-        wj = jac * wf[active][:, :, None]
-        normal = np.einsum("smi,smj->sij", wj, jac)
-        normal += 1e-12 * np.eye(3) * np.trace(normal, axis1=1, axis2=2)[:, None, None]
-        grad = np.einsum("smi,sm->si", wj, res)
-        step = -np.linalg.solve(normal, grad[:, :, None])[:, :, 0]
-        params[active] = p + step
-        done = np.abs(step).max(axis=1) <= 1e-12 * scale
-        idx = np.flatnonzero(active)
-        active[idx[done]] = False
         if not active.any():
             break
-    if active.any() or not np.all(np.isfinite(params)):
-        raise GeometryError("subset circle fit: did not converge (an arc too short or too noisy)")
-    centers = params[:, :2].copy()
-    radii = np.abs(params[:, 2])
-    return centers, radii
+        broken = active & ~(np.isfinite(normal).all(axis=(1, 2)) & np.isfinite(grad).all(axis=1))
+        params[broken] = np.nan  # overflowed on its way to an infinite radius
+        active &= ~broken
+        if not active.any():
+            break
+        idx = np.flatnonzero(active)
+        n_a, g_a = normal[idx], grad[idx]
+        diag = n_a * np.eye(3)
+        lhs = n_a + (damping[idx, None, None] + 1e-12) * diag
+        lhs += 1e-300 * np.eye(3)
+        step = -np.linalg.solve(lhs, g_a[:, :, None])[:, :, 0]
+        trial = params[idx] + step
+        n_t, g_t, c_t = _normal_equations(trial, pts[idx], wf[idx])
+        # Levenberg-Marquardt: keep a step that lowers the cost, else damp more and retry
+        better = np.isfinite(c_t) & (c_t <= cost[idx])
+        acc = idx[better]
+        params[acc], normal[acc], grad[acc], cost[acc] = (
+            trial[better],
+            n_t[better],
+            g_t[better],
+            c_t[better],
+        )
+        damping[idx] = np.where(better, np.maximum(damping[idx] / 3.0, 1e-9), damping[idx] * 4.0)
+        size = np.maximum(np.abs(params[idx, 2]), 1e-300)
+        small = np.abs(step).max(axis=1) <= tolerance * size
+        active[idx[small | (damping[idx] > 1e12)]] = False
+    params[active] = np.nan  # not converged
+    # a radius a thousand times the points' extent: the points are (nearly) collinear
+    extent = np.where(w[:, :, None], pts, np.nan)
+    extent = np.nanmax(extent, axis=1) - np.nanmin(extent, axis=1)
+    params[np.abs(params[:, 2]) > 1e3 * extent.max(axis=1)] = np.nan
+    return params[:, :2].copy(), np.abs(params[:, 2])

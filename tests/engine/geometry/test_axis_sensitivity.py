@@ -7,6 +7,8 @@ from the distal point (0) towards posterior (90), sampled uniformly in theta.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from scipy.optimize import minimize
@@ -163,15 +165,10 @@ def test_too_few_nodes_to_resample():
 
 
 # --------------------------------------------------------------------------- two condyles
-@pytest.mark.parametrize("side", ["right", "left"])
-def test_known_axis_of_two_spiral_condyles_is_within_the_reported_spread(side):
-    """The synthetic knee's condyle rims made spirals (lateral 22 -> 17 mm, medial 25 -> 19 mm
-    along their 0-120 deg arc), the whole knee externally rotated by 4 deg and tilted.
-
-    The known axis runs through each rim's least-squares circle centre, found here by a
-    generic simplex search on the noise-free nodes; the fit of the noisy nodes through
-    compute_joint_axes must recover its direction within the spread it reports.
-    """
+def spiral_knee(side="right", wide=False):
+    """Synthetic knee whose condyle rims are spirals (lateral 22 -> 17, medial 25 -> 19 mm along
+    0-120 deg), 0.05 mm noise; returns the knee, its setup, the coordinates and the known axis
+    (through each rim's least-squares circle centre, found by a generic simplex search)."""
     knee = build_synthetic_knee(side=side)
     setup = load_setup(knee.setup, knee.model)
     coords = knee.model.coords.copy()
@@ -189,16 +186,31 @@ def test_known_axis_of_two_spiral_condyles_is_within_the_reported_spread(side):
         theta = np.degrees(np.arctan2(-d[:, 0], -d[:, 1]))  # 0 distal, 90 posterior
         profile = spiral_profile(theta, r0, r1, arc=(0.0, 120.0)) + np.array([-8.0, 0.0])
         centre2d, _, _ = least_squares_circle(profile)
-        expected.append(np.array([centre2d[0], local[:, 1].mean(), centre2d[1]]))
+        y = local[:, 1]
+        if wide:  # spread the rows across 4x the width, as a wide picked band
+            y = y.mean() + 4.0 * (y - y.mean())
+        expected.append(np.array([centre2d[0], y.mean(), centre2d[1]]))
         noisy = profile + rng.normal(0.0, 0.05, profile.shape)
-        local = np.column_stack([noisy[:, 0], local[:, 1], noisy[:, 1]])
+        local = np.column_stack([noisy[:, 0], y, noisy[:, 1]])
         coords[idx] = local @ world.T + origin
     known = world @ (expected[1] - expected[0])
     known /= np.linalg.norm(known)
     turn = rotation_matrix([0.3, 0.2, 1.0], 4.0)
     centre = coords.mean(axis=0)
     coords = (coords - centre) @ turn.T + centre
-    known = turn @ known
+    return knee, setup, coords, turn @ known
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_known_axis_of_two_spiral_condyles_is_within_the_reported_spread(side):
+    """The synthetic knee's condyle rims made spirals (lateral 22 -> 17 mm, medial 25 -> 19 mm
+    along their 0-120 deg arc), the whole knee externally rotated by 4 deg and tilted.
+
+    The known axis runs through each rim's least-squares circle centre, found here by a
+    generic simplex search on the noise-free nodes; the fit of the noisy nodes through
+    compute_joint_axes must recover its direction within the spread it reports.
+    """
+    _, setup, coords, known = spiral_knee(side)
     axes = compute_joint_axes(coords, setup)
     angle = np.degrees(np.arccos(np.clip(axes.fe_axis.direction @ known, -1.0, 1.0)))
     assert axes.sensitivity is not None
@@ -207,3 +219,73 @@ def test_known_axis_of_two_spiral_condyles_is_within_the_reported_spread(side):
     assert angle < 0.5 * reported
     assert axes.lateral_fit.rms > 0.05 and axes.medial_fit.rms > 0.05
     assert "sensitivity" in axes.to_dict()
+
+
+def test_subsets_go_through_the_same_estimator_as_compute_joint_axes(monkeypatch):
+    """The batched resampling (with the frame re-aimed per subset) against the obvious slow
+    path: compute_joint_axes on each subset's node sets. The rows are spread wide across the
+    condyle so that the frame refinement matters; both paths refine the frame to its fixed
+    point (30 refinements) so that they are compared at convergence."""
+    import kneegui.geometry.axes
+    from kneegui.geometry.axis_sensitivity import _subsets
+
+    monkeypatch.setattr(kneegui.geometry.axes, "SAGITTAL_REFINEMENTS", 30)
+    knee, setup, coords, _ = spiral_knee("left", wide=True)
+    settings = SensitivitySettings(n_subsets=12, seed=3)
+    full = compute_joint_axes(coords, setup)
+    fast = axis_sensitivity(
+        coords[setup.lateral_condyle],
+        coords[setup.medial_condyle],
+        full.anterior,
+        full.superior,
+        full.sagittal_normal,
+        full.origin,
+        settings=settings,
+        frame_refinements=30,
+    )
+    fixed = axis_sensitivity(
+        coords[setup.lateral_condyle],
+        coords[setup.medial_condyle],
+        full.anterior,
+        full.superior,
+        full.sagittal_normal,
+        full.origin,
+        settings=settings,
+        frame_refinements=0,
+    )
+    rng = np.random.default_rng(settings.seed)
+    keep_lat = _subsets(rng, len(setup.lateral_condyle), settings)
+    keep_med = _subsets(rng, len(setup.medial_condyle), settings)
+    u = full.fe_axis.direction
+    for k in range(settings.n_subsets):
+        data = copy.deepcopy(knee.setup)
+        ids = knee.model.node_ids
+        data["landmarks"]["lateral_condyle"] = ids[setup.lateral_condyle[keep_lat[k]]].tolist()
+        data["landmarks"]["medial_condyle"] = ids[setup.medial_condyle[keep_med[k]]].tolist()
+        one = compute_joint_axes(coords, load_setup(data, knee.model))
+        v = one.fe_axis.direction
+        angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(v, u)), v @ u))
+        assert fast.direction_deg[k] == pytest.approx(angle, abs=1e-6)
+        d = one.lateral_center - full.lateral_center
+        shift = np.linalg.norm(d - (d @ u) * u)
+        assert fast.lateral_center_mm[k] == pytest.approx(shift, abs=1e-6)
+        dr = one.medial_fit.radius - full.medial_fit.radius
+        assert fast.medial_radius_mm[k] == pytest.approx(dr, abs=1e-6)
+    # on such a wide set, holding the frame would misjudge the spread
+    assert np.abs(fixed.direction_deg - fast.direction_deg).max() > 1e-3
+
+
+def test_subsets_without_a_circle_make_the_spread_infinite():
+    """Four collinear nodes and one off the line: every subset leaving out the fifth node has
+    no circle. Those subsets count as infinitely far, and are counted."""
+    line = np.column_stack([np.linspace(-20.0, -5.0, 4), np.full(4, -30.0), np.full(4, -20.0)])
+    lat = np.vstack([line, [-15.0, -30.0, -12.0]])
+    med = condyle(31, 23.0, 23.0, ml=25.0, seed=3)
+    s = spread(lat, med)
+    left_out_fifth = 200 / 5  # one of the five nodes is left out of each subset
+    assert 0.5 * left_out_fifth < s.n_failed < 1.5 * left_out_fifth
+    assert np.isinf(s.direction_spread_deg)
+    d = s.to_dict()
+    assert d["direction_spread_deg"] is None and d["failed_subsets"] == s.n_failed
+    assert s.summary().startswith("F-E axis unstable")
+    assert np.all(np.isinf(s.direction_deg[~np.isfinite(s.lateral_radius_mm)]))

@@ -92,7 +92,8 @@ def test_input_not_mutated():
 
 @pytest.mark.parametrize("noise", [0.0, 0.1, 1.0])
 def test_subset_fits_equal_one_by_one_fits(noise):
-    """The batched fast path against the obvious slow one, subset by subset.
+    """The batched fast path against the obvious slow one, subset by subset, from the algebraic
+    starts and from a common start.
 
     ``fit_circle_2d`` stops on its cost tolerance up to ~1e-7 mm from the optimum on a 1 mm noisy
     arc; the batch iterates to a zero gradient, so agreement is asked to 1e-6 mm.
@@ -101,11 +102,26 @@ def test_subset_fits_equal_one_by_one_fits(noise):
     pts = arc((3.0, -4.0), 22.0, 190.0, 320.0, 31) + rng.normal(0.0, noise, (31, 2))
     keep = rng.random((40, 31)) > 0.2
     keep[:, :3] = True
-    centres, radii = fit_circles_2d_subsets(pts, keep, fit_circle_2d(pts))
-    for k in range(len(keep)):
-        one = fit_circle_2d(pts[keep[k]])
-        np.testing.assert_allclose(centres[k], one.center, atol=1e-6)
-        assert radii[k] == pytest.approx(one.radius, abs=1e-6)
+    full = fit_circle_2d(pts)
+    start = np.tile([*full.center, full.radius], (len(keep), 1))
+    for centres, radii in (
+        fit_circles_2d_subsets(pts, keep),
+        fit_circles_2d_subsets(pts, keep, start),
+    ):
+        for k in range(len(keep)):
+            one = fit_circle_2d(pts[keep[k]])
+            np.testing.assert_allclose(centres[k], one.center, atol=1e-6)
+            assert radii[k] == pytest.approx(one.radius, abs=1e-6)
+
+
+def test_subset_without_a_circle_is_nan():
+    pts = np.column_stack([np.linspace(0.0, 10.0, 6), np.zeros(6)])
+    pts[5] = [5.0, 3.0]
+    keep = np.ones((2, 6), dtype=bool)
+    keep[0, 5] = False  # five collinear points
+    centres, radii = fit_circles_2d_subsets(pts, keep)
+    assert np.isnan(radii[0]) and np.all(np.isnan(centres[0]))
+    assert np.isfinite(radii[1])
 
 
 def test_subset_fit_rejects_tiny_subsets():
@@ -113,4 +129,4 @@ def test_subset_fit_rejects_tiny_subsets():
     keep = np.zeros((2, 10), dtype=bool)
     keep[:, :2] = True
     with pytest.raises(GeometryError, match="fewer than 3"):
-        fit_circles_2d_subsets(pts, keep, fit_circle_2d(pts))
+        fit_circles_2d_subsets(pts, keep)

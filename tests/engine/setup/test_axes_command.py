@@ -87,3 +87,18 @@ def test_suggest_needs_a_side(deck, capsys, tmp_path):
     assert main(["axes", str(folder / "knee.k"), "--suggest", str(tmp_path / "s.json")]) == 2
     assert "--suggest needs --side" in capsys.readouterr().err
     assert not (tmp_path / "s.json").exists()
+
+
+def test_unstable_spread_is_said_so():
+    from kneegui.commands.axes import format_sensitivity
+
+    spread = {
+        "direction_spread_deg": None,
+        "percentile": 95.0,
+        "n_subsets": 200,
+        "leave_out_fraction": 0.2,
+        "failed_subsets": 40,
+    }
+    line = format_sensitivity(spread)
+    assert line.startswith("F-E axis spread: unstable") and "40 gave no determined circle" in line
+    assert "not measured" in format_sensitivity(None)
