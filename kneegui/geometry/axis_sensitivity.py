@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import GeometryError
 from kneegui.geometry.circle_fit import (
+    SUBSET_FIT_MAX_ITERATIONS,
     SUBSET_FIT_TOLERANCE,
     CircleFit,
     fit_circle_2d,
@@ -270,9 +271,16 @@ def axis_sensitivity(
         centres, radii_sub = [], []
         for k in range(2):
             local = rel[k] @ basis.transpose(0, 2, 1)  # (S, M, 3)
-            # the frame still moves before the last step: fit it loosely until then
-            tol = SUBSET_FIT_TOLERANCE if step == frame_refinements else 1e-7
-            c2, radii = fit_circles_2d_subsets(local[:, :, :2], keeps[k], starts[k], tol)
+            # the frame still moves before the last step: fit it loosely until then (a subset
+            # not settled in 10 iterations keeps its frame and restarts from its Kasa circle)
+            last = step == frame_refinements
+            c2, radii = fit_circles_2d_subsets(
+                local[:, :, :2],
+                keeps[k],
+                starts[k],
+                tolerance=SUBSET_FIT_TOLERANCE if last else 1e-7,
+                max_iterations=SUBSET_FIT_MAX_ITERATIONS if last else 10,
+            )
             starts[k] = np.column_stack([c2, radii])
             radii_sub.append(radii)
             ml = (keeps[k] * local[:, :, 2]).sum(axis=1) / keeps[k].sum(axis=1)

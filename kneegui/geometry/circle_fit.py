@@ -185,6 +185,7 @@ def fit_circles_2d_subsets(
     keep: ArrayLike,
     start: ArrayLike | None = None,
     tolerance: float = SUBSET_FIT_TOLERANCE,
+    max_iterations: int = SUBSET_FIT_MAX_ITERATIONS,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Geometric least-squares circles of many subsets of a point set, in one batch.
 
@@ -203,13 +204,15 @@ def fit_circles_2d_subsets(
         NaN starts from its algebraic circle.
     tolerance : float
         A subset is converged when its last step is below ``tolerance`` times its radius.
+    max_iterations : int
+        Levenberg-Marquardt iterations allowed.
 
     Returns
     -------
     centers : (S, 2) ndarray of float
     radii : (S,) ndarray of float
         NaN for a subset whose circle is not determined (nearly collinear points, or no
-        convergence in ``SUBSET_FIT_MAX_ITERATIONS``).
+        convergence in ``max_iterations``).
 
     Raises
     ------
@@ -247,7 +250,7 @@ def fit_circles_2d_subsets(
     active = np.isfinite(params).all(axis=1)
     normal, grad, cost = _normal_equations(params, pts, wf)
     damping = np.full(n_sub, 1e-3)
-    for _ in range(SUBSET_FIT_MAX_ITERATIONS):
+    for _ in range(max_iterations):
         if not active.any():
             break
         broken = active & ~(np.isfinite(normal).all(axis=(1, 2)) & np.isfinite(grad).all(axis=1))
