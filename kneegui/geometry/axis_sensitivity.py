@@ -265,15 +265,16 @@ def axis_sensitivity(
         centres_full.append(origin + np.array([*full.center, local[:, 2].mean()]) @ basis0)
         full_radii.append(full.radius)
     n_sub = np.tile(n0, (settings.n_subsets, 1))
-    for step in range(frame_refinements + 1):
+    refined, last = 0, frame_refinements == 0
+    while True:
         ant = handed * _unit_rows(np.cross(n_sub, f))
         basis = np.stack([ant, np.broadcast_to(f, ant.shape), n_sub], axis=1)  # (S, 3, 3)
         centres, radii_sub = [], []
         for k in range(2):
             local = rel[k] @ basis.transpose(0, 2, 1)  # (S, M, 3)
-            # the frame still moves before the last step: fit it loosely until then (a subset
-            # not settled in 10 iterations keeps its frame and restarts from its Kasa circle)
-            last = step == frame_refinements
+            # while the frame still moves the circles are fitted loosely (a subset not settled
+            # in 10 iterations keeps its frame and restarts from its Kasa circle); the last fit,
+            # in the settled frame, is the full one
             c2, radii = fit_circles_2d_subsets(
                 local[:, :, :2],
                 keeps[k],
@@ -286,7 +287,7 @@ def axis_sensitivity(
             ml = (keeps[k] * local[:, :, 2]).sum(axis=1) / keeps[k].sum(axis=1)
             coeffs = np.column_stack([c2, ml])[:, None, :]
             centres.append(origin + (coeffs @ basis)[:, 0, :])
-        if step == frame_refinements:
+        if last:
             break
         across = centres[1] - centres[0]
         across -= np.outer(across @ f, f)
@@ -295,9 +296,9 @@ def axis_sensitivity(
         with np.errstate(invalid="ignore"):
             follow = np.einsum("si,si->s", n_new, n_sub) >= 0.9  # False for a failed subset
             moved = np.abs(n_new - n_sub).max(axis=1) > FRAME_TOLERANCE
-        if not np.any(follow & moved):
-            break
         n_sub = np.where(follow[:, None], n_new, n_sub)
+        refined += 1
+        last = refined == frame_refinements or not np.any(follow & moved)
     axis_full = _unit_rows((centres_full[1] - centres_full[0])[None, :])[0]
     axes_sub = _unit_rows(centres[1] - centres[0])
     # angle from the cross and dot products: accurate for small angles too
