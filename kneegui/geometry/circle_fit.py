@@ -134,6 +134,9 @@ def fit_circle_2d(points2d: ArrayLike) -> CircleFit:
     )
 
 
+_EYE3 = np.eye(3)
+
+
 def _normal_equations(params, pts, w):
     """Gauss-Newton normal matrix (S, 3, 3), gradient (S, 3) and cost (S,) of weighted circle
     fits: residual ``|p - c| - r``, Jacobian rows ``(-dx/dist, -dy/dist, -1)``.
@@ -259,13 +262,15 @@ def fit_circles_2d_subsets(
         if not active.any():
             break
         idx = np.flatnonzero(active)
-        n_a, g_a = normal[idx], grad[idx]
-        diag = n_a * np.eye(3)
-        lhs = n_a + (damping[idx, None, None] + 1e-12) * diag
-        lhs += 1e-300 * np.eye(3)
+        every = len(idx) == n_sub  # no fancy-index copies while every subset iterates
+        n_a, g_a = (normal, grad) if every else (normal[idx], grad[idx])
+        diag = n_a * _EYE3
+        lhs = n_a + (damping[idx, None, None] + 1e-12) * diag + 1e-300 * _EYE3
         step = -np.linalg.solve(lhs, g_a[:, :, None])[:, :, 0]
         trial = params[idx] + step
-        n_t, g_t, c_t = _normal_equations(trial, pts[idx], wf[idx])
+        n_t, g_t, c_t = _normal_equations(
+            trial, pts if every else pts[idx], wf if every else wf[idx]
+        )
         # Levenberg-Marquardt: keep a step that lowers the cost, else damp more and retry
         better = np.isfinite(c_t) & (c_t <= cost[idx])
         acc = idx[better]
@@ -280,8 +285,6 @@ def fit_circles_2d_subsets(
         small = np.abs(step).max(axis=1) <= tolerance * size
         active[idx[small | (damping[idx] > 1e12)]] = False
     params[active] = np.nan  # not converged
-    # a radius a thousand times the points' extent: the points are (nearly) collinear
-    extent = np.where(w[:, :, None], pts, np.nan)
-    extent = np.nanmax(extent, axis=1) - np.nanmin(extent, axis=1)
-    params[np.abs(params[:, 2]) > 1e3 * extent.max(axis=1)] = np.nan
+    # a radius a thousand times the points' spread: the points are (nearly) collinear
+    params[np.abs(params[:, 2]) > 1e3 * np.sqrt(major / sw)] = np.nan
     return params[:, :2].copy(), np.abs(params[:, 2])
