@@ -1,7 +1,8 @@
 """Dock panels. Each one calls the workspace and listens to it; none talks to another.
 
 - :class:`ModelPanel`: parts grouped by role, colour swatches, visibility, role editing, counts.
-- :class:`LandmarkPanel`: pick targets, condyle sets, axis points, fits (radius, RMS), undo/redo.
+- :class:`LandmarkPanel`: pick targets, condyle sets, axis points, fits (radius, RMS, axis
+  spread), undo/redo.
 - :class:`FlexionPanel`: the flexion slider and spin box.
 - :class:`QualityPanel`: heat-map metric, threshold, worst elements with zoom, cut-away.
 - :class:`LigamentPanel`: stretch colouring and the length-vs-flexion plot.
@@ -207,6 +208,7 @@ class LandmarkPanel(QWidget):
             ("medial_condyle", "Medial nodes"),
             ("lateral_fit", "Lateral circle"),
             ("medial_fit", "Medial circle"),
+            ("fe_spread", "F-E axis spread"),
             ("lr_axis", "L-R axis"),
             ("femur_axis", "Femoral axis"),
             ("tibia_axis", "Tibial axis"),
@@ -215,6 +217,13 @@ class LandmarkPanel(QWidget):
             self.labels[key] = QLabel("–")
             self.labels[key].setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
             form.addRow(label, self.labels[key])
+        self.labels["fe_spread"].setToolTip(
+            "How much the F-E axis depends on the picked condyle nodes: 95th percentile of the "
+            "change of the axis direction, of the circle centres (lateral / medial) and of the "
+            "radii (± in the circle rows) over 200 fits, each leaving out a random fifth of "
+            "each condyle's nodes. Real condyles are not circles; a large spread means the "
+            "axis follows the picking."
+        )
         layout.addWidget(box)
         self.problem = QLabel("")
         self.problem.setWordWrap(True)
@@ -265,13 +274,35 @@ class LandmarkPanel(QWidget):
             )
         axes = ws.axes if ws.setup_problem is None else None
         if axes is not None:
-            for side, fit in (("lateral", axes.lateral_fit), ("medial", axes.medial_fit)):
+            spread = axes.sensitivity
+            radius_spread = (
+                (None, None)
+                if spread is None
+                else (spread.lateral_radius_spread_mm, spread.medial_radius_spread_mm)
+            )
+            for side, fit, dr in (
+                ("lateral", axes.lateral_fit, radius_spread[0]),
+                ("medial", axes.medial_fit, radius_spread[1]),
+            ):
+                pm = "" if dr is None else f" ± {dr:.2f}"
                 self.labels[f"{side}_fit"].setText(
-                    f"R = {fit.radius:.2f} mm, RMS = {fit.rms:.3f} mm, arc {fit.arc_span_deg:.0f}°"
+                    f"R = {fit.radius:.2f}{pm} mm, RMS = {fit.rms:.3f} mm, "
+                    f"arc {fit.arc_span_deg:.0f}°"
                 )
+            if spread is None:
+                text = "– (too few nodes)"
+            elif not np.isfinite(spread.direction_spread_deg):
+                text = f"unstable: {spread.n_failed} of {spread.settings.n_subsets} fits failed"
+            else:
+                text = (
+                    f"{spread.direction_spread_deg:.2f}°, centres "
+                    f"{spread.lateral_center_spread_mm:.2f} / "
+                    f"{spread.medial_center_spread_mm:.2f} mm"
+                )
+            self.labels["fe_spread"].setText(text)
             self.labels["flexion"].setText(f"{axes.initial_flexion_deg:.1f}°")
         else:
-            for key in ("lateral_fit", "medial_fit", "flexion"):
+            for key in ("lateral_fit", "medial_fit", "fe_spread", "flexion"):
                 self.labels[key].setText("–")
         problem = ws.setup_problem or ""
         warnings = list(axes.warnings) if axes is not None else []

@@ -39,6 +39,27 @@ def _vec(v: Any) -> str:
     return "(" + ", ".join(f"{float(x):9.3f}" for x in v) + ")"
 
 
+def format_sensitivity(spread: dict[str, Any] | None) -> str:
+    """One line of :meth:`AxisSensitivity.to_dict` (None: not measured)."""
+    if spread is None:
+        return "F-E axis spread: not measured (too few condyle nodes to leave a fifth out)"
+    how = (
+        f"{spread['percentile']:g}th percentile over {spread['n_subsets']} fits each leaving out "
+        f"{100 * spread['leave_out_fraction']:g} % of each condyle's nodes"
+    )
+    failed = spread.get("failed_subsets", 0)
+    if failed:
+        how += f"; {failed} gave no determined circle"
+    if spread["direction_spread_deg"] is None:
+        return f"F-E axis spread: unstable ({how})"
+    return (
+        f"F-E axis spread: {spread['direction_spread_deg']:.2f} deg, centres "
+        f"{spread['lateral_center_spread_mm']:.2f} / {spread['medial_center_spread_mm']:.2f} mm, "
+        f"radii {spread['lateral_radius_spread_mm']:.2f} / "
+        f"{spread['medial_radius_spread_mm']:.2f} mm (lateral / medial; {how})"
+    )
+
+
 def format_axes(result: dict[str, Any]) -> str:
     """Human-readable text of :meth:`JointAxes.to_dict` (plus setup warnings)."""
     lines = [
@@ -58,6 +79,7 @@ def format_axes(result: dict[str, Any]) -> str:
     ):
         ax = result[key]
         lines.append(f"{label:15s} point {_vec(ax['point'])}  direction {_vec(ax['direction'])}")
+    lines.append(format_sensitivity(result.get("sensitivity")))
     lines.append(f"initial flexion: {result['initial_flexion']:.2f} deg")
     for w in result["warnings"]:
         lines.append(f"warning: {w}")

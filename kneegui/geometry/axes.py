@@ -34,7 +34,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import GeometryError
-from kneegui.geometry.circle_fit import CircleFit, fit_outer_profile
+from kneegui.geometry.axis_sensitivity import AxisSensitivity, axis_sensitivity
+from kneegui.geometry.circle_fit import CircleFit, fit_circle_2d
 from kneegui.geometry.transforms import unit
 from kneegui.resources import RESOURCES_DIR
 
@@ -148,6 +149,10 @@ class JointAxes:
         Fit quality findings (radius outside limits, RMS too large, short arc, ...).
     setup : KneeLandmarks
         The setup the axes were computed from (a :class:`~kneegui.setup.format.JointSetup`).
+    sensitivity : AxisSensitivity or None
+        How much the F-E axis, centres and radii move when a fifth of each condyle's nodes is
+        left out at random (:func:`~kneegui.geometry.axis_sensitivity.axis_sensitivity`); None
+        if the node sets are too small to resample.
     """
 
     lateral_fit: CircleFit
@@ -167,6 +172,7 @@ class JointAxes:
     patella_center: NDArray[np.float64] | None
     warnings: tuple[str, ...]
     setup: KneeLandmarks = field(repr=False, compare=False)
+    sensitivity: AxisSensitivity | None = field(default=None, repr=False, compare=False)
 
     @property
     def left(self) -> NDArray[np.float64]:
@@ -199,6 +205,7 @@ class JointAxes:
             "superior": [float(v) for v in self.superior],
             "initial_flexion": self.initial_flexion_deg,
             "warnings": list(self.warnings),
+            "sensitivity": None if self.sensitivity is None else self.sensitivity.to_dict(),
         }
 
 
@@ -329,24 +336,22 @@ class _SagittalFrame:
     origin: NDArray[np.float64]
     fits: tuple[CircleFit, CircleFit]
     centres: tuple[NDArray[np.float64], NDArray[np.float64]]
-    used: tuple[int, int]
 
 
 def _fit_condyles(pos: _LandmarkPositions, f, n, anterior, origin):
     basis = np.stack([anterior, f, n])  # rows: anterior, superior, lateral->medial
-    fits, centres, used_counts = [], [], []
+    fits, centres = [], []
     for name, pts in (("lateral", pos.lateral), ("medial", pos.medial)):
         local = (pts - origin) @ basis.T
         try:
-            fit, used = fit_outer_profile(local[:, :2])
+            fit = fit_circle_2d(local[:, :2])
         except GeometryError as exc:
             raise GeometryError(f"{name} condyle: {exc}") from None
         fits.append(fit)
-        used_counts.append(int(used.sum()))
         centres.append(
-            origin + fit.center[0] * anterior + fit.center[1] * f + local[used, 2].mean() * n
+            origin + fit.center[0] * anterior + fit.center[1] * f + local[:, 2].mean() * n
         )
-    return fits, centres, used_counts
+    return fits, centres
 
 
 def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
@@ -357,7 +362,7 @@ def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
     origin = 0.5 * (pos.lateral.mean(axis=0) + pos.medial.mean(axis=0))
     for i in range(SAGITTAL_REFINEMENTS + 1):
         anterior = unit(np.cross(side_sign * n, f), "anterior direction")
-        fits, centres, used = _fit_condyles(pos, f, n, anterior, origin)
+        fits, centres = _fit_condyles(pos, f, n, anterior, origin)
         if i == SAGITTAL_REFINEMENTS:
             break
         try:
@@ -370,11 +375,26 @@ def _sagittal_frame(pos: _LandmarkPositions, side_sign: int) -> _SagittalFrame:
         n = n_new
         if converged:
             anterior = unit(np.cross(side_sign * n, f), "anterior direction")
-            fits, centres, used = _fit_condyles(pos, f, n, anterior, origin)
+            fits, centres = _fit_condyles(pos, f, n, anterior, origin)
             break
-    return _SagittalFrame(
-        f, n, anterior, origin, (fits[0], fits[1]), (centres[0], centres[1]), (used[0], used[1])
-    )
+    return _SagittalFrame(f, n, anterior, origin, (fits[0], fits[1]), (centres[0], centres[1]))
+
+
+def _sensitivity(pos: _LandmarkPositions, frame: _SagittalFrame) -> AxisSensitivity | None:
+    """Axis spread over node subsets, None when a set is too small to resample."""
+    try:
+        return axis_sensitivity(
+            pos.lateral,
+            pos.medial,
+            frame.anterior,
+            frame.superior,
+            frame.normal,
+            frame.origin,
+            fits=frame.fits,
+            frame_refinements=SAGITTAL_REFINEMENTS,
+        )
+    except GeometryError:
+        return None
 
 
 def compute_joint_axes(model_coords: ArrayLike, setup: KneeLandmarks) -> JointAxes:
@@ -408,15 +428,6 @@ def compute_joint_axes(model_coords: ArrayLike, setup: KneeLandmarks) -> JointAx
 
     limits = condyle_fit_limits()
     warnings = []
-    for name, count, total in (
-        ("lateral", frame.used[0], len(pos.lateral)),
-        ("medial", frame.used[1], len(pos.medial)),
-    ):
-        if count < total:
-            warnings.append(
-                f"{name} condyle: fitted the outer boundary of the projected nodes "
-                f"({count} of {total} nodes; the others lie inside the circle)"
-            )
     for name, fit in (("lateral", fits[0]), ("medial", fits[1])):
         if not limits["radius_min"] <= fit.radius <= limits["radius_max"]:
             warnings.append(
@@ -425,7 +436,8 @@ def compute_joint_axes(model_coords: ArrayLike, setup: KneeLandmarks) -> JointAx
             )
         if fit.rms > limits["rms_max"]:
             warnings.append(
-                f"{name} condyle fit RMS {fit.rms:.2f} mm exceeds {limits['rms_max']:g} mm"
+                f"{name} condyle fit RMS {fit.rms:.2f} mm exceeds {limits['rms_max']:g} mm "
+                "(nodes off the posterior outline, e.g. a picked surface patch?)"
             )
         if fit.arc_span_deg < limits["arc_span_min"]:
             warnings.append(
@@ -461,4 +473,5 @@ def compute_joint_axes(model_coords: ArrayLike, setup: KneeLandmarks) -> JointAx
         patella_center=patella_center,
         warnings=tuple(warnings),
         setup=setup,
+        sensitivity=_sensitivity(pos, frame),
     )

@@ -37,6 +37,10 @@ def test_axes_json(deck, capsys):
         assert set(out[key]) == {"point", "direction"}
         assert sum(v * v for v in out[key]["direction"]) == pytest.approx(1.0)
     assert out["side"] == "left"
+    # exact circles: the axis does not depend on which nodes are left out
+    spread = out["sensitivity"]
+    assert spread["direction_spread_deg"] < 1e-4
+    assert spread["n_subsets"] == 200 and spread["leave_out_fraction"] == 0.2
 
 
 def test_axes_text(deck, capsys):
@@ -47,6 +51,7 @@ def test_axes_text(deck, capsys):
     assert "medial condyle:  radius 23.30 mm" in text
     assert "initial flexion: 12.00 deg" in text
     assert "F-E axis (GCA)" in text and "L-R axis" in text
+    assert "F-E axis spread: 0.00 deg" in text and "over 200 fits" in text
 
 
 def test_bad_setup_exits_2(deck, capsys, tmp_path):
@@ -81,3 +86,18 @@ def test_suggest_needs_a_side(deck, capsys, tmp_path):
     assert main(["axes", str(folder / "knee.k"), "--suggest", str(tmp_path / "s.json")]) == 2
     assert "--suggest needs --side" in capsys.readouterr().err
     assert not (tmp_path / "s.json").exists()
+
+
+def test_unstable_spread_is_said_so():
+    from kneegui.commands.axes import format_sensitivity
+
+    spread = {
+        "direction_spread_deg": None,
+        "percentile": 95.0,
+        "n_subsets": 200,
+        "leave_out_fraction": 0.2,
+        "failed_subsets": 40,
+    }
+    line = format_sensitivity(spread)
+    assert line.startswith("F-E axis spread: unstable") and "40 gave no determined circle" in line
+    assert "not measured" in format_sensitivity(None)

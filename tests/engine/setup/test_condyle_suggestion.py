@@ -141,3 +141,20 @@ def test_surface_matches_reference_on_mixed_elements():
         np.testing.assert_array_equal(
             surface_node_indices(model, parts), _reference_surface(model, parts)
         )
+
+
+def test_demo_leg_suggested_nodes_fit_its_circular_arcs():
+    """The demo's condyles are exact circular arcs (20.5 / 23.3 mm, docs/demo-leg.md): the plain
+    fit of the suggested nodes gives those radii and an axis that does not depend on the nodes."""
+    from kneegui.demo import generate_demo_leg
+    from kneegui.setup.landmarks import suggest_setup
+
+    leg = generate_demo_leg(2000)
+    setup = load_setup(suggest_setup(leg.model, "right"), leg.model)
+    axes = compute_joint_axes(leg.model.coords, setup)
+    assert axes.lateral_fit.radius == pytest.approx(20.5, abs=0.01)
+    assert axes.medial_fit.radius == pytest.approx(23.3, abs=0.01)
+    assert axes.sensitivity is not None
+    spread = axes.sensitivity
+    assert spread.direction_spread_deg < 0.01
+    assert max(spread.lateral_radius_spread_mm, spread.medial_radius_spread_mm) < 0.01
