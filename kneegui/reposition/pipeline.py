@@ -1,4 +1,9 @@
-"""Deck-to-deck posing: pose, measure, smooth, gate and report (what ``kneegui pose`` runs)."""
+"""The export: pose, relax, measure, smooth, gate and report.
+
+:func:`pose_model` is the one posing path that writes a pose: ``kneegui pose``, the GUI's
+Relax + smooth, the benchmarks and the scripts all call it, so they choose the fixed parts,
+solve the bones and word the warnings the same way.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +17,9 @@ import numpy as np
 from kneegui.model import SOLID_TYPES, Model
 from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
 from kneegui.quality.metrics import QualityResult
-from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
+from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE, BoneOverlap
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
+from kneegui.setup.format import JointSetup
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -80,6 +86,25 @@ def _volume_change(
     }
 
 
+def smoothing_parts(setup: JointSetup) -> tuple[list[int], list[int]]:
+    """The parts the export's smoothing may move (soft tissue less the skin, which keeps its
+    mapped and relaxed surface) and the parts whose nodes stay (bones, ``fixed`` and unassigned
+    parts, as :func:`~kneegui.reposition.repositioner.classify_nodes` keeps them)."""
+    fixed = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
+    fixed |= set(setup.unassigned_parts)
+    movable = set(setup.parts_of(*SOFT_ROLES)) - set(setup.parts_of("skin"))
+    return sorted(movable), sorted(fixed)
+
+
+def pose_warnings(overlaps: list[BoneOverlap], in_bones: dict[str, Any]) -> list[str]:
+    """The pose's warnings, one line each (the report's, the CLI's and the GUI's status line):
+    a bone reaching into another deeper than it did at rest (the kinematics do not suit these
+    bones: axes, landmarks or tables, and tissue between them is crushed), then each bone with
+    soft tissue inside it."""
+    warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
+    return warnings + tissue_in_bones_warnings(in_bones)
+
+
 def pose_model(
     repositioner: Repositioner,
     flexion_deg: float,
@@ -138,13 +163,11 @@ def pose_model(
             report_progress(0.5 + 0.45 * fraction, message)
 
         t = time.perf_counter()
-        fixed_parts = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
-        fixed_parts |= set(setup.unassigned_parts)
-        movable = soft_parts - set(setup.parts_of("skin"))
+        movable, fixed_parts = smoothing_parts(setup)
         final, smooth_report = smooth_posed_model(
             posed,
-            sorted(movable),
-            sorted(fixed_parts),
+            movable,
+            fixed_parts,
             initial_q,
             progress=smoothing_progress,
             cancel=cancel,
@@ -157,13 +180,10 @@ def pose_model(
     summary = summarize_quality(final, final_q, initial=initial_q)
     reasons = quality_gate(summary)
     overlaps = repositioner.bone_overlap(result.bone_pose)
-    # a bone reaching into another deeper than it did at rest: the kinematics do not suit
-    # these bones (axes, landmarks or tables), and tissue between them is crushed
-    warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
-    warnings += tissue_in_bones_warnings(in_bones)
+    warnings = pose_warnings(overlaps, in_bones)
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,

@@ -705,7 +705,7 @@ class Repositioner:
     def relax(
         self,
         coords: NDArray[np.float64],
-        bone: BonePose | float,
+        bone: BonePose,
         progress: ProgressCallback | None = None,
         cancel: Callable[[], bool] | None = None,
     ) -> tuple[NDArray[np.float64], RelaxReport]:
@@ -715,8 +715,8 @@ class Repositioner:
         ----------
         coords : (N, 3) ndarray
             All node coordinates of a pose (e.g. :meth:`pose`); not modified.
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) it was solved for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`), solved once per angle.
         progress, cancel : callable, optional
 
         Returns
@@ -729,8 +729,6 @@ class Repositioner:
             t = time.perf_counter()
             self.relaxation = self._elastic_relaxation()
             self.timings_s["relaxation"] = time.perf_counter() - t
-        if not isinstance(bone, BonePose):
-            bone = self.bone_pose(float(bone))
         if self._contact is None and self.options.relax_contact_reach > 0:
             # push the tissue the mapping put into the bones back out first, spread through
             # the tissue behind it: the relaxation then starts from a pose outside the bones
@@ -742,24 +740,20 @@ class Repositioner:
             self._relax_contact.resolve(coords, bone.transforms)
         return self.relaxation.relax(coords, bone.transforms, progress, cancel)
 
-    def bone_depth_guard(
-        self, coords: NDArray[np.float64], bone: BonePose | float
-    ) -> BoneDepthGuard:
+    def bone_depth_guard(self, coords: NDArray[np.float64], bone: BonePose) -> BoneDepthGuard:
         """A smoother position guard that keeps the tissue of a pose out of the bones.
 
         Parameters
         ----------
         coords : (N, 3) ndarray
             The pose about to be smoothed.
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) to solve it for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`).
         """
-        if not isinstance(bone, BonePose):
-            bone = self.bone_pose(float(bone))
         return BoneDepthGuard(self._bone_surfaces(), bone.transforms, coords)
 
     def tissue_in_bones(
-        self, coords: NDArray[np.float64], bone: BonePose | float, tolerance: float | None = None
+        self, coords: NDArray[np.float64], bone: BonePose, tolerance: float | None = None
     ) -> dict[str, Any]:
         """How much soft tissue of a pose lies inside the bones.
 
@@ -771,8 +765,8 @@ class Repositioner:
         ----------
         coords : (N, 3) ndarray
             The pose.
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) to solve it for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`).
         tolerance : float, optional
             Depth (model units) beyond which a node counts as inside; default
             :data:`TISSUE_IN_BONE_TOLERANCE` condyle radii.
@@ -803,19 +797,17 @@ class Repositioner:
             "bones": per_bone,
         }
 
-    def bone_overlap(self, bone: BonePose | float) -> list[BoneOverlap]:
+    def bone_overlap(self, bone: BonePose) -> list[BoneOverlap]:
         """How deep each rigid segment's surface lies inside another's in a pose (deepest
         first; :mod:`kneegui.reposition.bone_overlap`). The check is built on first use.
 
         Parameters
         ----------
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) to solve it for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`).
         """
         if self._overlap_check is None:
             self._overlap_check = BoneOverlapCheck(self._bone_surfaces())
-        if not isinstance(bone, BonePose):
-            bone = self.bone_pose(float(bone))
         return self._overlap_check.measure(bone.transforms)
 
     def with_options(self, **changes: Any) -> Repositioner:
