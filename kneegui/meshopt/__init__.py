@@ -26,6 +26,7 @@ from kneegui.meshopt.free_nodes import (
 from kneegui.meshopt.smoother import (
     SMOOTHED_TYPES,
     SmoothingReport,
+    SmoothOptions,
     corner_quality,
     smooth_mesh,
 )
@@ -34,6 +35,7 @@ from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 __all__ = [
     "MOVABLE_SOLID_TYPES",
     "SMOOTHED_TYPES",
+    "SmoothOptions",
     "SmoothingReport",
     "corner_quality",
     "degraded_elements",
