@@ -9,9 +9,6 @@ Methods (``RepositionOptions.method``), compared in docs/repositioning.md:
 ``"blend"``
     Every soft-tissue node follows a blend of the bones' rigid motions with harmonic weights
     (see :mod:`kneegui.reposition.rigid_blend`); no tetrahedron spans the joint, so nothing shears.
-``"hybrid"``
-    Skin by contours as in the paper; every other soft node by the rigid blend plus the
-    barycentric interpolation of how far the contour skin departs from the blend.
 
 Whatever the method, :meth:`Repositioner.pose_detailed` (what the export runs) then relaxes the
 tissue the mapping degraded, untangling inverted elements and keeping tissue out of the bones
@@ -67,7 +64,7 @@ from kneegui.setup.format import JointSetup
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.
 BAND_ROLES = ("ligament", "meniscus", "tendon")
-METHODS = ("paper", "blend", "hybrid")
+METHODS = ("paper", "blend")
 SEGMENTS = ("femur", "tibia", "patella", "fixed")
 
 #: Supported target flexion range (degrees).
@@ -106,7 +103,7 @@ class RepositionOptions:
     Attributes
     ----------
     method : str
-        ``"paper"``, ``"blend"`` or ``"hybrid"``.
+        ``"paper"`` or ``"blend"``.
     zone_factor : float
         Parallelizing zone length as a multiple of the skin radius at the joint.
     weight_shape : str
@@ -328,32 +325,27 @@ class Repositioner:
         self._flesh_embedding: Embedding | None = None
         self._band_embedding: Embedding | None = None
         self._weights: NDArray[np.float64] | None = None
-        if method in ("paper", "hybrid"):
+        if method == "paper":
             if len(self.groups.skin) < 4:
                 raise SetupError(
-                    "the contour methods need skin nodes: give the skin parts the "
+                    "the paper method needs skin nodes: give the skin parts the "
                     "'skin' role, or use method 'blend'",
                     key="roles.skin",
                 )
             t = self._stage("skin contours", 0.2)
             self.contours = self._build_contours()
             self._end("skin contours", t)
-        if method in ("blend", "hybrid"):
+        if method == "blend":
             t = self._stage("harmonic weights", 0.4)
             self._weights = self._harmonic_weights()
             self._end("harmonic weights", t)
-        if method in ("paper", "hybrid"):
+        if method == "paper":
             t = self._stage("delaunay embedding", 0.7)
             control = np.concatenate(
                 [self.groups.bone_surface, self.groups.skin, self._fixed_surface()]
             )
-            embedded = (
-                self.groups.flesh
-                if method == "paper"
-                else np.concatenate([self.groups.flesh, self.groups.band])
-            )
-            self._flesh_embedding = embed_nodes(coords, control, embedded)
-            if method == "paper" and len(self.groups.band):
+            self._flesh_embedding = embed_nodes(coords, control, self.groups.flesh)
+            if len(self.groups.band):
                 self._band_embedding = embed_nodes(coords, self.groups.skin, self.groups.band)
             self._end("delaunay embedding", t)
         self._surfaces: dict[str, BoneSurfaceDistance] | None = None  # built on first use
@@ -651,13 +643,13 @@ class Repositioner:
         skin_report = None
         method = self.options.method
         g = self.groups
-        if method in ("blend", "hybrid"):
+        if method == "blend":
             twists = np.stack([log_rigid(tr[s]) if s != "fixed" else np.zeros(6) for s in SEGMENTS])
             soft = g.soft
             out[soft] = exp_twists_apply(self._weights @ twists, coords0[soft])
         t2 = time.perf_counter()
         timings["blend"] = t2 - t1
-        if method in ("paper", "hybrid"):
+        if method == "paper":
             skin_xyz, skin_report = pose_skin(
                 self.contours,
                 coords0,
@@ -675,17 +667,11 @@ class Repositioner:
             t3 = time.perf_counter()
             timings["skin"] = t3 - t2
             emb = self._flesh_embedding
-            if method == "paper":
-                out[g.skin] = skin_xyz
-                out[emb.nodes] = emb.apply(out[emb.control])
-                if self._band_embedding is not None:
-                    be = self._band_embedding
-                    out[be.nodes] = be.apply(out[be.control])
-            else:
-                residual = np.zeros_like(out)
-                residual[g.skin] = skin_xyz - out[g.skin]
-                out[g.skin] = skin_xyz
-                out[emb.nodes] += emb.apply(residual[emb.control])
+            out[g.skin] = skin_xyz
+            out[emb.nodes] = emb.apply(out[emb.control])
+            if self._band_embedding is not None:
+                be = self._band_embedding
+                out[be.nodes] = be.apply(out[be.control])
             timings["soft tissue"] = time.perf_counter() - t3
         if self._contact is not None:
             t4 = time.perf_counter()

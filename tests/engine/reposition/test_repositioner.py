@@ -176,16 +176,15 @@ def test_unknown_method_is_refused():
         RepositionOptions(method="magic")
 
 
-@pytest.mark.parametrize("method", ["paper", "hybrid"])
-def test_other_methods_run_and_reach_the_angle(small_leg, small_setup, method):
-    rep = Repositioner(small_leg.model, small_setup, RepositionOptions(method=method))
+def test_the_paper_method_runs_and_reaches_the_angle(small_leg, small_setup):
+    rep = Repositioner(small_leg.model, small_setup, RepositionOptions(method="paper"))
     np.testing.assert_allclose(rep.pose(rep.initial_flexion), small_leg.model.coords, atol=1e-9)
     result = rep.pose_detailed(60.0)
     assert abs(result.achieved_flexion_deg - 60.0) < 0.1
     assert result.skin is not None and result.skin.half_angle_deg == pytest.approx(
         (60.0 - rep.initial_flexion) / 2, abs=1.0
     )
-    # their contour-placed skin folds and is left free in the relaxation (sliding it in its
+    # its contour-placed skin folds and is left free in the relaxation (sliding it in its
     # mapped planes kept 23 elements of the paper's pose inverted)
     assert rep.relaxation.options.slide_skin is False
     assert compute_quality(result.coords, small_leg.model.blocks).n_inverted == 0
