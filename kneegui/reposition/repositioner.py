@@ -10,9 +10,10 @@ Methods (``RepositionOptions.method``), compared in docs/repositioning.md:
     Every soft-tissue node follows a blend of the bones' rigid motions with harmonic weights
     (see :mod:`kneegui.reposition.rigid_blend`); no tetrahedron spans the joint, so nothing shears.
 
-Whatever the method, :meth:`Repositioner.pose_detailed` (what the export runs) then relaxes the
-tissue the mapping degraded, untangling inverted elements and keeping tissue out of the bones
-(:mod:`kneegui.reposition.relax`); :meth:`Repositioner.pose` (the live slider) skips that.
+Whatever the method, the export then improves the tissue the mapping degraded
+(:meth:`Repositioner.improve`: the mesh-improvement chain of :mod:`kneegui.meshopt.chain` in the
+region :mod:`kneegui.reposition.relax` sets up, untangling inverted elements and keeping tissue
+out of the bones); :meth:`Repositioner.pose` (the live slider) skips that.
 """
 
 from __future__ import annotations
@@ -29,10 +30,12 @@ from scipy.spatial import cKDTree
 from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
+from kneegui.meshopt.chain import ImprovementOptions, ImprovementReport, improve_region
 from kneegui.meshopt.quality_optimiser import quality_aims
-from kneegui.meshopt.smoothing_pipeline import smoothing_goals
+from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 from kneegui.model import Model
 from kneegui.quality import compute_quality
+from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
@@ -40,6 +43,7 @@ from kneegui.reposition.embedding import Embedding, embed_nodes
 from kneegui.reposition.patella_tracking import PatellaSeating
 from kneegui.reposition.relax import (
     ElasticRelaxation,
+    RelaxedRegion,
     RelaxOptions,
     RelaxReport,
     corner_tetrahedra,
@@ -71,6 +75,16 @@ SEGMENTS = ("femur", "tibia", "patella", "fixed")
 FLEXION_RANGE = (-10.0, 150.0)
 
 ProgressCallback = Callable[[float, str], None]
+
+
+def smoothing_parts(setup: JointSetup) -> tuple[list[int], list[int]]:
+    """The parts the export's smoothing may move (soft tissue less the skin, which keeps its
+    mapped and relaxed surface) and the parts whose nodes stay (bones, ``fixed`` and unassigned
+    parts, as :func:`classify_nodes` keeps them)."""
+    fixed = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
+    fixed |= set(setup.unassigned_parts)
+    movable = set(setup.parts_of(*SOFT_ROLES)) - set(setup.parts_of("skin"))
+    return sorted(movable), sorted(fixed)
 
 
 def tissue_in_bones_warnings(found: Mapping[str, Any]) -> list[str]:
@@ -123,15 +137,22 @@ class RepositionOptions:
         export); :meth:`Repositioner.pose` never does.
     relax_reach : float
         Only soft-tissue nodes within this many mean condyle radii of the F-E axis may be
-        relaxed (bounds the precompute on large models). 7 would let the relaxation reach
-        more of the thigh and calf flesh whose mapped volume changes most (the default demo at
-        90 deg with ``RelaxOptions.volume_change=0.1``: 3 soft solids changed by more than
-        25 % instead of 20) but left a node of the small demo 1.1 mm inside the fibula at
-        90 deg (measured, not kept).
+        relaxed (bounds the precompute on large models; 7 was measured and not kept,
+        docs/repositioning.md).
     relax_region : float
         The relaxed region reaches this many mean condyle radii around the degraded tissue.
-    relaxation : RelaxOptions
-        Parameters of the relaxation.
+    improvement : ImprovementOptions
+        The mesh-improvement chain's stages after the mapping (:mod:`kneegui.meshopt.chain`):
+        the untangling energy, the quality optimisation and the smoothing.
+    volume_change : float or None
+        In the quality optimisation, every soft solid element aims to keep its volume within
+        ``1 + volume_change`` times its initial volume, either way (None: no limit, and the
+        optimiser may shrink an element whose proportions stay good). Tighter aims trade volume
+        against the bone contact (docs/repositioning.md, known limits).
+    contour_margin : float or None
+        In the quality optimisation, every skin contour keeps at least this far (model units)
+        beyond the plane of its neighbour nearer the joint, so that no contour crosses another;
+        None lets them cross, which gives the crease behind a deeply flexed knee more room.
     contact_reach, contact_clearance
         Soft-tissue nodes within ``contact_reach`` mean condyle radii of a bone slide on it but
         are kept out of it, at their rest clearance up to ``contact_clearance`` (model units);
@@ -173,7 +194,9 @@ class RepositionOptions:
     relax: bool = True
     relax_reach: float = 5.0
     relax_region: float = 1.0
-    relaxation: RelaxOptions = field(default_factory=RelaxOptions)
+    improvement: ImprovementOptions = field(default_factory=ImprovementOptions)
+    volume_change: float | None = 0.5
+    contour_margin: float | None = 0.5
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -367,6 +390,7 @@ class Repositioner:
         self._overlap_check: BoneOverlapCheck | None = None
         self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
         self._order_contours: SkinContours | None = None  # for blend: the relaxation's order
+        self._initial_quality: QualityResult | None = None  # the smoothing's reference
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -494,10 +518,11 @@ class Repositioner:
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         free = self._soft_near_joint()
         initial = compute_quality(model.coords, model.blocks)
-        options = self.options.relaxation
+        options = self.options.improvement.relax or RelaxOptions()
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
-        contours = self._relaxed_contours() if options.contour_margin is not None else None
+        margin = self.options.contour_margin
+        contours = self._relaxed_contours() if margin is not None else None
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
@@ -510,14 +535,14 @@ class Repositioner:
             region_radius=self.options.relax_region * size,
             sliding=g.skin,
             blocks=model.blocks,
-            goals=smoothing_goals(initial),
             aims=quality_aims(
                 initial,
                 model.blocks,
                 rest_coords=model.coords,
-                volume_change=options.volume_change,
+                volume_change=self.options.volume_change,
             ),
             skin_contours=contours,
+            contour_margin=margin,
         )
 
     def _relaxed_contours(self) -> SkinContours | None:
@@ -694,8 +719,33 @@ class Repositioner:
         bone: BonePose,
         progress: ProgressCallback | None = None,
         cancel: Callable[[], bool] | None = None,
-    ) -> tuple[NDArray[np.float64], RelaxReport]:
-        """Relax the soft tissue of a pose (see :mod:`kneegui.reposition.relax`).
+    ) -> tuple[NDArray[np.float64], RelaxReport | None]:
+        """Relax the soft tissue of a pose: :meth:`improve` without the smoothing.
+
+        Returns
+        -------
+        coords : (N, 3) ndarray
+            Relaxed coordinates (bones and fixed nodes unchanged).
+        report : RelaxReport or None
+            None when ``options.improvement.relax`` is None.
+        """
+        coords, report = self.improve(coords, bone, smooth=False, progress=progress, cancel=cancel)
+        return coords, report.relaxation
+
+    def improve(
+        self,
+        coords: NDArray[np.float64],
+        bone: BonePose,
+        *,
+        relax: bool = True,
+        smooth: bool = True,
+        progress: ProgressCallback | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> tuple[NDArray[np.float64], ImprovementReport]:
+        """Run the mesh-improvement chain (:func:`kneegui.meshopt.chain.improve_region`,
+        ``options.improvement``) on the soft tissue of a pose, in the region
+        :mod:`kneegui.reposition.relax` sets up: untangle, meet the quality aims, then (with
+        ``smooth``) smooth the soft tissue but the skin, with :meth:`bone_depth_guard`.
 
         Parameters
         ----------
@@ -703,28 +753,66 @@ class Repositioner:
             All node coordinates of a pose (e.g. :meth:`pose`); not modified.
         bone : BonePose
             The bones' pose (:meth:`bone_pose`), solved once per angle.
+        relax, smooth : bool
+            Run the untangling and quality stages, and the smoothing stage (each when
+            ``options.improvement`` has it).
         progress, cancel : callable, optional
 
         Returns
         -------
         coords : (N, 3) ndarray
-            Relaxed coordinates (bones and fixed nodes unchanged).
-        report : RelaxReport
+            Improved coordinates (bones and fixed nodes unchanged).
+        report : ImprovementReport
         """
-        if self.relaxation is None:  # built on first use
-            t = time.perf_counter()
-            self.relaxation = self._elastic_relaxation()
-            self.timings_s["relaxation"] = time.perf_counter() - t
-        if self._contact is None and self.options.relax_contact_reach > 0:
-            # push the tissue the mapping put into the bones back out first, spread through
-            # the tissue behind it: the relaxation then starts from a pose outside the bones
-            if self._relax_contact is None:
+        options = self.options.improvement
+        if not smooth:
+            options = replace(options, smooth=None)
+        if not relax:
+            options = replace(options, relax=None)
+        relaxation = None
+        if options.relax is not None:
+            if self.relaxation is None:  # built on first use
                 t = time.perf_counter()
-                self._relax_contact = self._bone_contact(self.options.relax_contact_reach)
-                self.timings_s["relaxation contact"] = time.perf_counter() - t
-            coords = np.array(coords, dtype=np.float64, copy=True)
-            self._relax_contact.resolve(coords, bone.transforms)
-        return self.relaxation.relax(coords, bone.transforms, progress, cancel)
+                self.relaxation = self._elastic_relaxation()
+                self.timings_s["relaxation"] = time.perf_counter() - t
+            relaxation = self.relaxation
+            # the relaxation was built with the method's choice of slide_skin
+            options = replace(options, relax=relaxation.options)
+            if self._contact is None and self.options.relax_contact_reach > 0:
+                # push the tissue the mapping put into the bones back out first, spread
+                # through the tissue behind it: the relaxation then starts from a pose outside
+                # the bones
+                if self._relax_contact is None:
+                    t = time.perf_counter()
+                    self._relax_contact = self._bone_contact(self.options.relax_contact_reach)
+                    self.timings_s["relaxation contact"] = time.perf_counter() - t
+                coords = np.array(coords, dtype=np.float64, copy=True)
+                self._relax_contact.resolve(coords, bone.transforms)
+        region = RelaxedRegion(relaxation, bone.transforms, self._smoothing_stage(bone))
+        return improve_region(coords, region, options, progress, cancel)
+
+    def _smoothing_stage(self, bone: BonePose):
+        """The chain's smoothing for a pose: the soft tissue but the skin moves, bones, fixed
+        and unassigned parts stay (:func:`smoothing_parts`), no node goes deeper into a bone
+        (:meth:`bone_depth_guard`), elements aim at their initial quality."""
+        movable, fixed = smoothing_parts(self.setup)
+
+        def smooth(coords, options, progress, cancel):
+            if self._initial_quality is None:
+                self._initial_quality = compute_quality(self.model.coords, self.model.blocks)
+            smoothed, report = smooth_posed_model(
+                self.model.with_coords(coords),
+                movable,
+                fixed,
+                self._initial_quality,
+                options=options,
+                position_guard=self.bone_depth_guard(coords, bone),
+                progress=progress,
+                cancel=cancel,
+            )
+            return smoothed.coords, report
+
+        return smooth
 
     def bone_depth_guard(self, coords: NDArray[np.float64], bone: BonePose) -> BoneDepthGuard:
         """A smoother position guard that keeps the tissue of a pose out of the bones.

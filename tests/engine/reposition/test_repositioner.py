@@ -7,11 +7,12 @@ import pytest
 
 from kneegui.errors import SetupError
 from kneegui.geometry.axes import measure_flexion
+from kneegui.meshopt.chain import ImprovementOptions
+from kneegui.meshopt.foldover import RelaxOptions
 from kneegui.meshopt.topology import boundary_node_mask
 from kneegui.quality import compute_quality
 from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.checks import inside_closed_surface, penetrating, surface_triangles
-from kneegui.reposition.relax import RelaxOptions
 from kneegui.reposition.skin_contours import build_skin_contours, count_contour_crossings
 from kneegui.setup import load_setup
 
@@ -75,7 +76,7 @@ def test_deep_flexion_is_untangled_by_restarting(small_repositioner, small_leg):
     the machine's round-off, so the test forces it)."""
     rep = small_repositioner.with_options(
         relax_contact_reach=0.0,
-        relaxation=RelaxOptions(max_rounds=1, restarts=1, optimise_quality=False, polish=False),
+        improvement=ImprovementOptions(RelaxOptions(max_rounds=1, restarts=1), quality=None),
     )
     result = rep.pose_detailed(130.0, remeasure=False)
     q = compute_quality(result.coords, small_leg.model.blocks)
