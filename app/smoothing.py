@@ -1,91 +1,66 @@
-"""Relaxing and smoothing the current pose through the engine (runs in the worker thread)."""
+"""Relax + smooth: the export's posing path for the pose on screen (runs in the worker thread)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.errors import SetupError
-from kneegui.model import Model
-from kneegui.reposition.relax import RelaxReport
-from kneegui.setup import JointSetup
-
-SOFT_ROLES = ("flesh", "ligament", "meniscus", "tendon", "capsule")
-FIXED_ROLES = ("femur", "tibia", "fibula", "patella", "fixed")
+from kneegui.reposition import Repositioner
+from kneegui.reposition.pipeline import pose_model
 
 
 @dataclass(frozen=True)
 class SmoothingOutcome:
-    """New coordinates and a one-line summary."""
+    """New coordinates, the export's report and a one-line summary."""
 
     coords: NDArray[np.float64]
-    report: object
+    report: dict[str, Any]
     message: str
 
 
 def smooth_current(
-    model: Model,
-    coords: NDArray[np.float64],
-    setup: JointSetup | None,
+    repositioner: Repositioner,
+    flexion_deg: float,
     progress: Callable[[float, str], None],
     cancelled: Callable[[], bool],
-    relax: Callable[..., tuple[NDArray[np.float64], RelaxReport]] | None = None,
-    bone_guard: Callable[[NDArray[np.float64]], Callable[..., NDArray[np.bool_]]] | None = None,
 ) -> SmoothingOutcome:
-    """Relax (``relax(coords, progress, cancelled)``, e.g. a bound
-    :meth:`kneegui.reposition.Repositioner.relax`) and smooth the soft tissue of ``model`` at
-    ``coords`` around its degraded elements; ``bone_guard(coords)`` (e.g.
-    :meth:`kneegui.reposition.Repositioner.bone_depth_guard` at the pose's flexion) gives the
-    smoother's position guard that keeps the tissue out of the bones."""
-    from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
+    """Pose, relax and smooth the model at ``flexion_deg`` exactly as ``kneegui pose`` does
+    (:func:`kneegui.reposition.pipeline.pose_model`), with a status line built from its report."""
+    posed = pose_model(repositioner, flexion_deg, progress=progress, cancel=cancelled)
+    return SmoothingOutcome(np.array(posed.model.coords), posed.report, status_line(posed.report))
 
-    if setup is None:
-        raise SetupError("smoothing needs a valid setup (roles say which parts may move)")
-    relaxed = ""
+
+def status_line(report: Mapping[str, Any]) -> str:
+    """One line from a :func:`~kneegui.reposition.pipeline.pose_model` report: its warnings
+    first (the status bar cuts a long line at the window's edge), then what the relaxation, its
+    quality optimisation and the smoother did."""
+    parts = []
+    relax = report.get("relaxation")
     if relax is not None:
-
-        def relax_progress(fraction: float, message: str) -> None:
-            progress(0.6 * fraction, message)
-
-        coords, relax_report = relax(coords, relax_progress, cancelled)
         stages = ""
-        quality = relax_report.quality
-        if quality is not None and quality.free_nodes:
+        quality = relax.get("quality")
+        if quality is not None and quality["free_nodes"]:
             stages += (
-                f", quality optimised: worst Jacobian {quality.worst_before:.3f} -> "
-                f"{quality.worst_after:.3f}"
+                f", quality optimised: worst Jacobian {quality['worst_before']:.3f} -> "
+                f"{quality['worst_after']:.3f}"
             )
-        done = relax_report.polish
-        if done is not None and done.moved_nodes:
-            stages += (
-                f", polish: worst Jacobian {done.worst_jacobian_before:.3f} -> "
-                f"{done.worst_jacobian_after:.3f}"
-            )
-        relaxed = (
-            f"relaxed {relax_report.free_nodes} nodes ({relax_report.inverted_corners_before} "
-            f"inverted corners -> {relax_report.inverted_corners_after}{stages}, "
-            f"{relax_report.seconds:.1f} s); "
+        parts.append(
+            f"relaxed {relax['free_nodes']} nodes ({relax['inverted_corners_before']} "
+            f"inverted corners -> {relax['inverted_corners_after']}{stages}, "
+            f"{relax['seconds']:.1f} s)"
         )
-
-    def smooth_progress(fraction: float, message: str) -> None:
-        progress(0.6 + 0.4 * fraction if relax is not None else fraction, message)
-
-    posed = model.with_coords(coords)
-    smoothed, report = smooth_posed_model(
-        posed,
-        setup.parts_of(*SOFT_ROLES),
-        setup.parts_of(*FIXED_ROLES),
-        initial=model,
-        progress=smooth_progress,
-        cancel=cancelled,
-        position_guard=None if bone_guard is None else bone_guard(coords),
-    )
-    message = relaxed + (
-        f"smoothed: {report.moved_nodes} nodes moved, worst Jacobian "
-        f"{report.worst_jacobian_before:.3f} -> {report.worst_jacobian_after:.3f}, inverted "
-        f"{report.inverted_before} -> {report.inverted_after} ({report.seconds:.1f} s)"
-    )
-    return SmoothingOutcome(np.array(smoothed.coords), report, message)
+    smooth = report.get("smoothing")
+    if smooth is not None:
+        parts.append(
+            f"smoothed: {smooth['moved_nodes']} nodes moved, worst Jacobian "
+            f"{smooth['worst_jacobian_before']:.3f} -> {smooth['worst_jacobian_after']:.3f}, "
+            f"inverted {smooth['inverted_before']} -> {smooth['inverted_after']} "
+            f"({smooth['seconds']:.1f} s)"
+        )
+    message = "; ".join(parts)
+    warnings = report.get("warnings") or []
+    return f"warning: {'; '.join(warnings)}; {message}" if warnings else message

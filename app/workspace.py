@@ -16,7 +16,6 @@ from __future__ import annotations
 import copy
 import json
 from collections.abc import Iterable, Mapping
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +31,6 @@ from kneegui.io.atomic import atomic_write_text
 from kneegui.ligaments import Ligament, length_curve, ligament_fibres
 from kneegui.model import Model
 from kneegui.quality import QualityEvaluator, QualityResult
-from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
 from kneegui.setup import ROLES, JointSetup, load_setup
 
 #: Slider range (degrees).
@@ -359,10 +357,7 @@ class Workspace(QObject):
             self.set_flexion(
                 self.flexion if self.flexion else self.poser.initial_flexion, force=True
             )
-            self.status.emit(
-                f"poser ready ({getattr(self.poser, 'kind', 'repositioner')}); initial flexion "
-                f"{self.poser.initial_flexion:.1f}°"
-            )
+            self.status.emit(f"poser ready; initial flexion {self.poser.initial_flexion:.1f}°")
 
         self._start("Preparing the repositioner", work, done)
 
@@ -774,42 +769,23 @@ class Workspace(QObject):
         return self._start("Ligament lengths", work, done)
 
     def smooth(self) -> bool:
-        """Relax and smooth the current pose in the worker thread (the result becomes current).
+        """Relax and smooth the pose at the current flexion in the worker thread, exactly as
+        the export does (:func:`kneegui.reposition.pipeline.pose_model`): the result becomes
+        the current pose and the status line gives the report's warnings and what was done.
 
-        The relaxation (untangling, bone contact) runs when a repositioner is ready and the
-        pose is the slider's, not already smoothed.
+        Returns False (and says why) while no poser is ready.
         """
         if self.model is None:
             return False
-        from app.smoothing import smooth_current
+        if self.poser is None:
+            self.status.emit("Relax + smooth waits for the poser (precomputing)")
+            return False
+        from app import smoothing
 
-        model, coords, setup = self.model, self.coords.copy(), self.setup
         poser, flexion = self.poser, self.flexion
-        relax = poser is not None and not self.smoothed
-
-        def relax_pose(x, progress, cancelled):
-            return poser.relax(x, flexion, progress, cancelled)
-
-        guard_for = getattr(poser, "bone_depth_guard", None)  # a Repositioner's
-        bone_guard = None if guard_for is None else (lambda x: guard_for(x, flexion))
 
         def work(progress, cancelled):
-            outcome = smooth_current(
-                model, coords, setup, progress, cancelled, relax_pose if relax else None, bone_guard
-            )
-            bone_overlap = getattr(poser, "bone_overlap", None)  # a Repositioner's
-            if bone_overlap is None:
-                return outcome
-            # bones reaching into each other crush the tissue between them: say so
-            overlaps = bone_overlap(flexion)
-            warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
-            from kneegui.reposition.repositioner import tissue_in_bones_warnings
-
-            warnings += tissue_in_bones_warnings(poser.tissue_in_bones(outcome.coords, flexion))
-            if not warnings:
-                return outcome
-            # warnings first: the status bar cuts a long line at the window's edge
-            return replace(outcome, message=f"warning: {'; '.join(warnings)}; {outcome.message}")
+            return smoothing.smooth_current(poser, flexion, progress, cancelled)
 
         def done(result):
             self.set_coords(result.coords, smoothed=True)

@@ -9,9 +9,7 @@
   distorted elements: random node jiggle, and a twisted core with inverted elements
   (target: <= 5 s);
 - smoothing the demo leg posed to 90 degrees, when ``kneegui.demo`` and the repositioner are
-  available;
-- the twist and the demo again with stage 2 run by ``scipy.optimize.minimize`` node by node
-  (``optimizer="scipy"``, at most 1000 nodes) instead of the batched simplexes.
+  available.
 
 Every time is the median of ``--repeats`` runs; wall-clock and process CPU seconds are both
 recorded (CPU time is less sensitive to other jobs on the machine; it counts every thread).
@@ -190,14 +188,8 @@ def run(repeats: int = 5, with_demo: bool = True) -> dict:
     )
     twist = twisted(block, 3.0, 3.0)
     results["smoothing_twist"] = bench_smoothing(block, twist, [2], [1], smooth_repeats)
-    results["smoothing_twist_scipy"] = bench_smoothing(
-        block, twist, [2], [1], smooth_repeats, optimizer="scipy", max_optimized_nodes=1000
-    )
     if with_demo:
         results["smoothing_demo_90deg"] = bench_demo(smooth_repeats)
-        results["smoothing_demo_90deg_scipy"] = bench_demo(
-            smooth_repeats, optimizer="scipy", max_optimized_nodes=1000
-        )
     return results
 
 

@@ -20,7 +20,6 @@ from kneegui.demo import generate_demo_leg
 from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.pipeline import pose_model
-from kneegui.reposition.relax import RelaxOptions
 from kneegui.setup import load_setup
 
 
@@ -28,23 +27,30 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("angles", type=float, nargs="+")
     parser.add_argument("--elements", type=int, default=20000)
-    defaults = RelaxOptions()
+    defaults = RepositionOptions()
     parser.add_argument("--volume-change", type=float, default=defaults.volume_change)
     parser.add_argument(
-        "--contact-stiffness", type=float, default=defaults.quality.constraint_stiffness
+        "--contact-stiffness",
+        type=float,
+        default=defaults.improvement.quality.constraint_stiffness,
     )
-    parser.add_argument("--reach", type=float, default=RepositionOptions().relax_reach)
+    parser.add_argument("--reach", type=float, default=defaults.relax_reach)
     args = parser.parse_args()
     leg = generate_demo_leg(args.elements)
     setup = load_setup(leg.setup, leg.model)
-    relax = dataclasses.replace(
+    improvement = dataclasses.replace(
+        defaults.improvement,
+        quality=dataclasses.replace(
+            defaults.improvement.quality, constraint_stiffness=args.contact_stiffness
+        ),
+    )
+    options = dataclasses.replace(
         defaults,
+        improvement=improvement,
         volume_change=args.volume_change,
-        quality=dataclasses.replace(defaults.quality, constraint_stiffness=args.contact_stiffness),
+        relax_reach=args.reach,
     )
-    rep = Repositioner(
-        leg.model, setup, RepositionOptions(relaxation=relax, relax_reach=args.reach)
-    )
+    rep = Repositioner(leg.model, setup, options)
     triangles = [
         surface_triangles(leg.model, setup.parts_of(role), shells=False)
         for role in ("femur", "tibia", "fibula", "patella")

@@ -1,12 +1,20 @@
 """Mesh improvement: every stage that moves free nodes to make a posed mesh solver-ready.
 
-The stages, in the order an export runs them (ALGORITHM.md §5):
+The chain, written once in :mod:`~kneegui.meshopt.chain` (:func:`improve_region`, options
+:class:`ImprovementOptions`, one dataclass per stage), in the order an export runs it
+(ALGORITHM.md §5):
 
-- :mod:`~kneegui.meshopt.foldover_kernel` + :mod:`~kneegui.meshopt.lbfgs`: the foldover-free
-  elastic energy and the deterministic L-BFGS that untangles inverted elements;
+- :mod:`~kneegui.meshopt.foldover` (+ its kernel :mod:`~kneegui.meshopt.foldover_kernel` and
+  :mod:`~kneegui.meshopt.lbfgs`): the foldover-free energy and the deterministic L-BFGS that
+  untangle inverted elements (:class:`RelaxOptions`);
 - :mod:`~kneegui.meshopt.quality_optimiser`: all free nodes moved together until every element
-  meets its quality aims;
-- :mod:`~kneegui.meshopt.smoother`: connectivity-preserving smoothing of what is still degraded.
+  meets its quality aims (:class:`QualityOptions`);
+- :mod:`~kneegui.meshopt.smoother`: connectivity-preserving smoothing of what is still degraded
+  (:class:`SmoothOptions`).
+
+The caller (``kneegui.reposition``) gives the region: which nodes are free and what constrains
+them. Numba is a dependency: every compiled kernel has a NumPy reference beside it that the
+tests compare it with.
 
 Smoothing helpers:
 
@@ -17,15 +25,24 @@ Smoothing helpers:
 - :func:`smooth_posed_model`: all of the above for a posed model and its roles.
 """
 
+from kneegui.meshopt.chain import (
+    ImprovementOptions,
+    ImprovementRegion,
+    ImprovementReport,
+    improve_region,
+)
+from kneegui.meshopt.foldover import RelaxOptions, RelaxReport
 from kneegui.meshopt.free_nodes import (
     MOVABLE_SOLID_TYPES,
     degraded_elements,
     smoothing_free_nodes,
     smoothing_sliding_nodes,
 )
+from kneegui.meshopt.quality_optimiser import QualityOptions
 from kneegui.meshopt.smoother import (
     SMOOTHED_TYPES,
     SmoothingReport,
+    SmoothOptions,
     corner_quality,
     smooth_mesh,
 )
@@ -34,9 +51,17 @@ from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 __all__ = [
     "MOVABLE_SOLID_TYPES",
     "SMOOTHED_TYPES",
+    "ImprovementOptions",
+    "ImprovementRegion",
+    "ImprovementReport",
+    "QualityOptions",
+    "RelaxOptions",
+    "RelaxReport",
+    "SmoothOptions",
     "SmoothingReport",
     "corner_quality",
     "degraded_elements",
+    "improve_region",
     "smooth_mesh",
     "smooth_posed_model",
     "smoothing_free_nodes",

@@ -1,8 +1,8 @@
 """Compiled energy and gradient of the elastic relaxation (one fused loop over the corners).
 
-The NumPy version in :class:`kneegui.reposition.relax._Subproblem` is the reference; this is the
-same arithmetic, corner by corner, compiled with Numba so that a solver iteration costs a few
-milliseconds instead of tens (tests check the two agree).
+The NumPy version, :meth:`kneegui.meshopt.foldover.FoldoverEnergy.energy_numpy`, is the
+reference; this is the same arithmetic, corner by corner, compiled with Numba so that a solver
+iteration costs a few milliseconds instead of tens (tests check the two agree).
 """
 
 from __future__ import annotations

@@ -2,14 +2,14 @@
 
 Stage 1 moves free nodes towards the mean of their edge neighbours (a Laplacian step, tried
 with relaxation 1, 1/2, 1/4); nodes that share no element move together (a colouring of the free
-nodes), so each step is one vectorised evaluation. Stage 2 runs Nelder-Mead
-(``scipy.optimize.minimize``) on each node still next to an element below its goal, worst
-first, maximising the summed normalised Jacobians of the elements sharing it with extra weight
-on the worst one. Both stages keep a move only if, over the elements sharing the node: the
-worst ordered quality J* (:func:`ordered_quality`) does not drop, the summed J* rises, no more
-elements are invalid, no corner Jacobian falls below the region's worst before smoothing, and the
-largest edge ratio stays below ``max(old, aspect_limit)``, and an optional position guard
-accepts the node's new place.
+nodes), so each step is one vectorised evaluation. Stage 2 runs Nelder-Mead (one simplex per
+node, the nodes of a colour at once, :mod:`kneegui.meshopt.batched`) on each node still next to
+an element below its goal, maximising the summed normalised Jacobians of the elements sharing
+it with extra weight on the worst one. Both stages keep a move only if, over the elements
+sharing the node: the worst ordered quality J* (:func:`ordered_quality`) does not drop, the
+summed J* rises, no more elements are invalid, no corner Jacobian falls below the region's
+worst before smoothing, and the largest edge ratio stays below ``max(old, aspect_limit)``, and
+an optional position guard accepts the node's new place.
 
 Hence the model's worst corner Jacobian never decreases; fixed nodes never move; element count
 and connectivity never change; and the result is deterministic.
@@ -23,7 +23,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import minimize
 
 from kneegui.errors import Cancelled, GeometryError
 from kneegui.meshopt.batched import build_problems, nelder_mead
@@ -49,6 +48,80 @@ CORNER_TRIPLES: dict[str, NDArray[np.int64]] = {
 SMOOTHED_TYPES: tuple[str, ...] = tuple(CORNER_TRIPLES)
 #: Corner nodes of each smoothed type (the connectivity columns the smoother reads).
 CORNER_NODES: dict[str, int] = {"hex8": 8, "wedge6": 6, "pyramid5": 5, "tet4": 4, "quad4": 4}
+
+
+@dataclass(frozen=True)
+class SmoothOptions:
+    """Parameters of the smoother (:func:`smooth_mesh`) and of the region it works on
+    (:func:`kneegui.meshopt.smooth_posed_model`).
+
+    Attributes
+    ----------
+    max_sweeps : int
+        Stage-1 (Laplacian) sweeps at most.
+    relaxation : tuple of float
+        Fractions of the Laplacian step tried in turn for each node, each in (0, 1].
+    optimize : bool
+        Run stage 2 (one Nelder-Mead simplex per node, all nodes of a colour at once,
+        :mod:`kneegui.meshopt.batched`).
+    max_optimized_nodes : int
+        Stage 2 runs at most this many node optimisations in all.
+    iterations : int
+        Simplex iterations per node (4 trial points per iteration).
+    passes : int
+        Rounds of stage 1 + stage 2 (stops early when a round changes nothing, or when no
+        element is invalid and every neighbourhood reaches its goal).
+    sliding_feature_angle : float
+        Degrees: a sliding node on boundary faces deviating more than this from its mean
+        normal (a feature edge) stays fixed.
+    aspect_limit : float
+        A move may not raise the largest edge ratio (longest / shortest edge) of the elements
+        sharing the node above ``max(its value before the move, aspect_limit)``.
+    warpage_limit : float
+        Likewise for the largest quad-face warpage (degrees) of the elements sharing the node.
+    rings : int
+        Element layers around the degraded elements whose nodes may move.
+    slide_skin : bool
+        Also let surface nodes of the soft tissue / skin slide tangentially.
+    soft_interfaces : bool
+        Also move nodes shared only by soft-tissue solids of different parts.
+    """
+
+    max_sweeps: int = 40
+    relaxation: tuple[float, ...] = (1.0, 0.5, 0.25)
+    optimize: bool = True
+    max_optimized_nodes: int = 20000
+    iterations: int = 10
+    passes: int = 3
+    sliding_feature_angle: float = 30.0
+    aspect_limit: float = 5.0
+    warpage_limit: float = 15.0
+    rings: int = 2
+    slide_skin: bool = False
+    soft_interfaces: bool = False
+
+    def __post_init__(self) -> None:
+        problems = [
+            f"{name} must be a whole number >= {low}, not {value!r}"
+            for name, value, low in (
+                ("max_sweeps", self.max_sweeps, 0),
+                ("max_optimized_nodes", self.max_optimized_nodes, 0),
+                ("iterations", self.iterations, 0),
+                ("rings", self.rings, 0),
+                ("passes", self.passes, 1),
+            )
+            if int(value) != value or value < low
+        ]
+        if not self.relaxation or not all(0 < r <= 1 for r in self.relaxation):
+            problems.append(f"relaxation must be step fractions in (0, 1], not {self.relaxation}")
+        if not 0 < self.sliding_feature_angle <= 180:
+            problems.append("sliding_feature_angle must be in (0, 180] degrees")
+        if not 0 < self.warpage_limit <= 180:
+            problems.append("warpage_limit must be in (0, 180] degrees")
+        if not self.aspect_limit >= 1:
+            problems.append("aspect_limit must be >= 1")
+        if problems:
+            raise ValueError("SmoothOptions: " + "; ".join(problems))
 
 
 @dataclass(frozen=True)
@@ -450,18 +523,8 @@ def smooth_mesh(
     free_nodes: ArrayLike,
     *,
     sliding_nodes: ArrayLike | None = None,
-    max_sweeps: int = 40,
-    relaxation: tuple[float, ...] = (1.0, 0.5, 0.25),
-    optimize: bool = True,
     target: float | Mapping[str, ArrayLike] = 0.6,
-    optimizer: str = "batched",
-    max_optimized_nodes: int = 20000,
-    iterations: int = 10,
-    max_evaluations: int = 40,
-    passes: int = 3,
-    sliding_feature_angle: float = 30.0,
-    aspect_limit: float = 5.0,
-    warpage_limit: float = 15.0,
+    options: SmoothOptions | None = None,
     position_guard: PositionGuard | None = None,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
@@ -480,38 +543,15 @@ def smooth_mesh(
     sliding_nodes : (N,) bool or int array_like, optional
         Surface nodes allowed to move only in the tangent plane of the solid mesh's boundary
         (e.g. skin nodes). Nodes on a feature edge (boundary faces deviating more than
-        ``sliding_feature_angle`` degrees from the mean normal) stay fixed.
-    max_sweeps : int
-        Stage-1 (Laplacian) sweeps at most.
-    relaxation : tuple of float
-        Fractions of the Laplacian step tried in turn for each node.
-    optimize : bool
-        Run stage 2 (Nelder-Mead per node).
+        ``options.sliding_feature_angle`` degrees from the mean normal) stay fixed.
     target : float or mapping of str to (m,) array_like
         Quality goal: both stages work on the nodes sharing an element whose corner Jacobian is
         below its goal (stage 1 also on their neighbours). A float applies to every element; a
         mapping gives one goal per element of a block (aligned with its rows; types not in the
         mapping use 0.6), e.g. ``min(0.6, initial Jacobian)`` so that elements are brought back
         to their initial quality rather than above it.
-    optimizer : {"batched", "scipy"}
-        Stage 2: ``"batched"`` runs one Nelder-Mead simplex per node for all the nodes of a
-        colour at once (vectorised, :mod:`kneegui.meshopt.batched`); ``"scipy"`` calls
-        ``scipy.optimize.minimize(method="Nelder-Mead")`` node by node, worst first (a few
-        milliseconds per node). Same objective and acceptance rules.
-    max_optimized_nodes : int
-        Stage 2 runs at most this many node optimisations in all.
-    iterations : int
-        Simplex iterations per node (batched optimizer; 4 trial points per iteration).
-    max_evaluations : int
-        Objective evaluations per node (scipy optimizer).
-    passes : int
-        Rounds of stage 1 + stage 2 (stops early when a round changes nothing, or when no
-        element is invalid and every neighbourhood reaches ``target``).
-    aspect_limit : float
-        A move may not raise the largest edge ratio (longest / shortest edge) of the elements
-        sharing the node above ``max(its value before the move, aspect_limit)``.
-    warpage_limit : float
-        Likewise for the largest quad-face warpage (degrees) of the elements sharing the node.
+    options : SmoothOptions, optional
+        Sweeps, stage 2 and the acceptance limits (default: :class:`SmoothOptions`).
     position_guard : callable(nodes, coords) -> (k,) bool, optional
         An extra rule on where a node may go: called with the indices of the nodes about to
         move and the full coordinate array holding their trial positions; a move is kept only
@@ -537,8 +577,7 @@ def smooth_mesh(
         If the coordinates contain NaN or infinity.
     """
     started = time.perf_counter()
-    if optimizer not in ("batched", "scipy"):
-        raise ValueError(f"optimizer must be 'batched' or 'scipy', not {optimizer!r}")
+    opt = options or SmoothOptions()
     if isinstance(model_or_coords, Model):
         coords0 = model_or_coords.coords
         blocks = model_or_coords.blocks if blocks is None else blocks
@@ -568,7 +607,7 @@ def smooth_mesh(
     if sliding.any():
         quads, tris = boundary_faces(blocks)
         normals = boundary_node_normals(coords, quads, tris)
-        cos_limit = np.cos(np.radians(sliding_feature_angle))
+        cos_limit = np.cos(np.radians(opt.sliding_feature_angle))
         worst_cos = np.ones(n_nodes)
         for faces in (quads, tris):
             if len(faces):
@@ -635,10 +674,11 @@ def smooth_mesh(
             goal[span] = float(target)
     state = _State(
         nb, coords, jac, scaled, aspect, warp, movable, projector, basis, worst_before, scale,
-        float(aspect_limit), float(np.cos(np.radians(warpage_limit))), goal, position_guard,
+        float(opt.aspect_limit), float(np.cos(np.radians(opt.warpage_limit))), goal,
+        position_guard,
     )  # fmt: skip
     moves = sweeps = optimized = improved = 0
-    n_passes = max(int(passes), 1) if n_mov else 0
+    n_passes = max(int(opt.passes), 1) if n_mov else 0
     dirty = np.ones(n_mov, dtype=bool)  # nodes whose neighbourhood changed since last tried
     for p in range(n_passes):
         before = (int(np.count_nonzero(jac <= 0)), float(jac.min()), float(jac.sum()))
@@ -651,22 +691,16 @@ def smooth_mesh(
             report_progress((p + 0.5 + 0.5 * fraction) / n_passes, message)
 
         m, s_ = _laplacian_stage(
-            state, colours, (conflict_ptr, conflict_nbrs), max_sweeps, relaxation,
+            state, colours, (conflict_ptr, conflict_nbrs), opt.max_sweeps, opt.relaxation,
             sweep_progress, check_cancel,
         )  # fmt: skip
         moves += m
         sweeps += s_
-        if optimize and optimized < max_optimized_nodes:
-            if optimizer == "batched":
-                o, i_ = _batched_stage(
-                    state, colours, max_optimized_nodes - optimized, iterations, node_progress,
-                    check_cancel, dirty,
-                )  # fmt: skip
-            else:
-                o, i_ = _optimisation_stage(
-                    state, max_optimized_nodes - optimized, max_evaluations, node_progress,
-                    check_cancel, dirty,
-                )  # fmt: skip
+        if opt.optimize and optimized < opt.max_optimized_nodes:
+            o, i_ = _batched_stage(
+                state, colours, opt.max_optimized_nodes - optimized, opt.iterations,
+                node_progress, check_cancel, dirty,
+            )  # fmt: skip
             optimized += o
             improved += i_
         after = (int(np.count_nonzero(jac <= 0)), float(jac.min()), float(jac.sum()))
@@ -822,41 +856,6 @@ def _laplacian_stage(
     return moves, sweeps
 
 
-def _optimisation_stage(
-    st: _State,
-    max_nodes: int,
-    max_evaluations: int,
-    progress: ProgressCallback,
-    check_cancel: Callable[[], None],
-    dirty: NDArray[np.bool_],
-) -> tuple[int, int]:
-    """Stage 2: Nelder-Mead per node, worst neighbourhoods first. Returns (tried, improved).
-
-    Only nodes flagged ``dirty`` (their neighbourhood changed since they were last tried) are
-    optimised.
-    """
-    nb = st.nb
-    n_mov = len(st.movable)
-    handles, h_owner = _csr_gather(nb.node_ptr, nb.node_handles, np.arange(n_mov))
-    node_min = np.full(n_mov, np.inf)
-    np.minimum.at(node_min, h_owner, ordered_quality(st.jac[handles], st.scaled[handles]))
-    node_deficit = np.full(n_mov, np.inf)
-    np.minimum.at(node_deficit, h_owner, st.deficit(handles))
-    todo = np.flatnonzero((node_deficit < 0) & dirty)
-    todo = todo[np.lexsort((todo, node_min[todo]))][:max_nodes]
-    improved = tried = 0
-    for count, ci in enumerate(todo):
-        if count % 25 == 0:
-            check_cancel()
-            progress(count / len(todo), "optimising nodes")
-        h = nb.node_handles[nb.node_ptr[ci] : nb.node_ptr[ci + 1]]
-        if st.deficit(h).min() >= 0:
-            continue  # a neighbour's optimisation already lifted this one
-        tried += 1
-        improved += _optimise_node(st, int(ci), max_evaluations)
-    return tried, improved
-
-
 def _batched_stage(
     st: _State,
     colours: list[NDArray[np.int64]],
@@ -953,142 +952,3 @@ def _inverted_out_of_reach(
             jac, _ = corner_quality(coords[out[start : start + 65536]], etype)
             count += int(np.count_nonzero(jac <= 0))
     return count
-
-
-def _optimise_node(st: _State, ci: int, max_evaluations: int) -> int:
-    """Nelder-Mead on one node; updates the state's arrays in place. 1 if the node improved.
-
-    With one node moving, every corner determinant is an affine function of its position
-    (a tetrahedron's volume is affine in each vertex; quad shells keep their starting mean
-    normal during the search), so the objective is evaluated from a precomputed affine map
-    ``dets(x) = D0 + G (x - x0)``; edge ratios use the node's own edges and the fixed extremes
-    of the other edges. The final position is re-checked with the exact measures.
-    """
-    nb, coords = st.nb, st.coords
-    node = int(st.movable[ci])
-    handles = nb.node_handles[nb.node_ptr[ci] : nb.node_ptr[ci + 1]]
-    if len(handles) == 0:
-        return 0
-    types = nb.handle_type[handles]
-    type_ids = np.unique(types)
-    order = np.concatenate([np.flatnonzero(types == ti) for ti in type_ids])
-    handles = handles[order]
-    types = types[order]
-    x0 = coords[node].copy()
-    b = st.basis.get(node, np.eye(3))
-    groups = []
-    other_lo, other_hi, ends, owner = [], [], [], []
-    row0 = 0
-    for ti in type_ids:
-        conn = nb.conn[ti][nb.handle_row[handles[types == ti]]]
-        pts = coords[conn]
-        etype = nb.types[ti]
-        normal = None
-        if etype == "quad4":
-            normal = np.cross(pts[:, 2] - pts[:, 0], pts[:, 3] - pts[:, 1])
-        at = conn == node
-        groups.append((etype, at, pts, normal))
-        # edges: those at the node move with it, the others are fixed
-        e = _EDGE_INDEX[etype]
-        a_at, b_at = at[:, e[:, 0]], at[:, e[:, 1]]
-        length_sq = np.einsum("mek,mek->me", *(2 * [pts[:, e[:, 1]] - pts[:, e[:, 0]]]))
-        fixed = ~(a_at | b_at)
-        other_lo.append(np.where(fixed, length_sq, np.inf).min(axis=1))
-        other_hi.append(np.where(fixed, length_sq, 0.0).max(axis=1))
-        far = np.where(a_at, e[:, 1], e[:, 0])  # the other end of each edge
-        rows, cols = np.nonzero(a_at | b_at)
-        ends.append(pts[rows, far[rows, cols]])
-        owner.append(row0 + rows)
-        row0 += len(conn)
-    other_lo = np.concatenate(other_lo)
-    other_hi = np.concatenate(other_hi)
-    ends = np.concatenate(ends)
-    owner = np.concatenate(owner)
-    starts = np.searchsorted(owner, np.arange(len(other_lo)))  # every element has a node edge
-    distances = np.linalg.norm(ends - x0, axis=1)
-    local_scale = float(distances.mean()) if len(distances) else st.scale
-    local_scale = local_scale or st.scale
-    width = max(CORNER_TRIPLES[g[0]].shape[0] for g in groups)
-
-    def all_dets(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        out = []
-        for etype, at, pts, normal in groups:
-            p = pts.copy()
-            p[at] = x
-            d = corner_determinants(p, etype, normal)
-            if d.shape[1] < width:  # pad with the first column: min / max unchanged
-                d = np.hstack([d, np.repeat(d[:, :1], width - d.shape[1], axis=1)])
-            out.append(d)
-        return np.vstack(out)
-
-    d0 = all_dets(x0)
-    gradient = np.stack(
-        [
-            (all_dets(x0 + local_scale * b[:, k]) - d0).ravel() / local_scale
-            for k in range(b.shape[1])
-        ]
-    )  # (dim, E * width)
-    shape = d0.shape
-    n_el = shape[0]
-    one = np.zeros(len(handles), dtype=np.int64)
-    old = _score(st.jac[handles], st.scaled[handles], st.aspect[handles], st.warp[handles], one, 1)
-    old_worst = float(old.worst[0])
-    old_inverted = float(old.inverted[0])
-    aspect_cap = max(float(old.worst_aspect[0]), st.aspect_limit)
-    size = np.maximum(np.abs(d0).max(axis=1), 1e-300)  # per-element determinant scale
-
-    def surrogate(u: NDArray[np.float64]) -> float:
-        # J* with the worst corner scaled by the element's starting determinant size
-        d = d0 + (u @ gradient).reshape(shape)
-        hi = d.max(axis=1)
-        lo = d.min(axis=1)
-        valid = lo > 0
-        star = np.where(valid, lo / np.where(valid, hi, 1.0), np.maximum(lo / size, -1.0) - 1.0)
-        worst = float(star.min())
-        value = star.sum() + n_el * worst
-        penalty = 10.0 * n_el * max(0.0, old_worst - worst)
-        penalty += 10.0 * max(0.0, float(np.count_nonzero(~valid)) - old_inverted)
-        diff = ends - (x0 + b @ u)
-        sq = np.einsum("ij,ij->i", diff, diff)
-        e_hi = np.maximum(other_hi, np.maximum.reduceat(sq, starts))
-        e_lo = np.minimum(other_lo, np.minimum.reduceat(sq, starts))
-        ratio = float(np.sqrt((e_hi / np.maximum(e_lo, 1e-300)).max()))
-        penalty += 10.0 * n_el * max(0.0, ratio - aspect_cap) / aspect_cap
-        return -(value - penalty)
-
-    dim = b.shape[1]
-    simplex = np.vstack([np.zeros(dim), 0.2 * local_scale * np.eye(dim)])
-    res = minimize(
-        surrogate,
-        np.zeros(dim),
-        method="Nelder-Mead",
-        options={
-            "initial_simplex": simplex,
-            "maxfev": max_evaluations,
-            "xatol": 1e-2 * local_scale,
-            "fatol": 1e-4,
-        },
-    )
-    x = x0 + b @ res.x
-    js, ss, asp, wrp = [], [], [], []
-    for etype, at, pts, _ in groups:
-        p = pts.copy()
-        p[at] = x
-        j, s_ = corner_quality(p, etype)
-        js.append(j)
-        ss.append(s_)
-        asp.append(edge_ratio(p, etype))
-        wrp.append(warp_cosine(p, etype))
-    j, s_, a, w = np.concatenate(js), np.concatenate(ss), np.concatenate(asp), np.concatenate(wrp)
-    new = _score(j, s_, a, w, one, 1)
-    if _accept(old, new, st.floor, st.aspect_limit, st.warp_limit_cos)[0]:
-        coords[node] = x
-        if not st.allowed(np.array([node]), np.array([True]))[0]:
-            coords[node] = x0
-            return 0
-        st.jac[handles] = j
-        st.scaled[handles] = s_
-        st.aspect[handles] = a
-        st.warp[handles] = w
-        return 1
-    return 0

@@ -14,8 +14,10 @@ from kneegui.meshopt.free_nodes import (
 )
 from kneegui.meshopt.smoother import (
     CancelCallback,
+    PositionGuard,
     ProgressCallback,
     SmoothingReport,
+    SmoothOptions,
     smooth_mesh,
 )
 from kneegui.model import Model
@@ -42,13 +44,11 @@ def smooth_posed_model(
     *,
     threshold: float = 0.6,
     tolerance: float = 0.02,
-    rings: int = 2,
-    slide_skin: bool = False,
     skin_part_ids: Iterable[int] = (),
-    soft_interfaces: bool = False,
+    options: SmoothOptions | None = None,
+    position_guard: PositionGuard | None = None,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
-    **options,
 ) -> tuple[Model, SmoothingReport]:
     """Smooth the soft tissue of a posed model around its degraded elements.
 
@@ -69,18 +69,14 @@ def smooth_posed_model(
     tolerance : float
         Loss of corner Jacobian against the initial model that is ignored (both for finding
         the degraded elements and for the goals).
-    rings : int
-        Element layers around the degraded elements whose nodes may move.
-    slide_skin : bool
-        Also let surface nodes of the soft tissue / skin slide tangentially.
     skin_part_ids : iterable of int
-        Skin parts (shells sharing the flesh's surface nodes), used with ``slide_skin``.
-    soft_interfaces : bool
-        Also move nodes shared only by soft-tissue solids of different parts.
-    progress, cancel : callable, optional
+        Skin parts (shells sharing the flesh's surface nodes), used with
+        ``options.slide_skin``.
+    options : SmoothOptions, optional
+        The smoother's parameters and the region's (``rings``, ``slide_skin``,
+        ``soft_interfaces``).
+    position_guard, progress, cancel : callable, optional
         See :func:`kneegui.meshopt.smooth_mesh`.
-    **options
-        Passed to :func:`kneegui.meshopt.smooth_mesh` (``max_sweeps``, ``optimize``, ...).
 
     Returns
     -------
@@ -88,6 +84,7 @@ def smooth_posed_model(
         A new model with smoothed coordinates (same ids and connectivity).
     report : SmoothingReport
     """
+    opt = options or SmoothOptions()
     soft = list(soft_tissue_part_ids)
     fixed = list(fixed_part_ids)
     quality = compute_quality(posed.coords, posed.blocks)
@@ -95,10 +92,10 @@ def smooth_posed_model(
         compute_quality(initial.coords, initial.blocks) if isinstance(initial, Model) else initial
     )
     degraded = degraded_elements(quality, initial_quality, threshold, tolerance)
-    free = smoothing_free_nodes(posed, soft, fixed, degraded, rings, soft_interfaces)
+    free = smoothing_free_nodes(posed, soft, fixed, degraded, opt.rings, opt.soft_interfaces)
     sliding = None
-    if slide_skin:
-        sliding = smoothing_sliding_nodes(posed, soft, skin_part_ids, fixed, degraded, rings)
+    if opt.slide_skin:
+        sliding = smoothing_sliding_nodes(posed, soft, skin_part_ids, fixed, degraded, opt.rings)
     goals: dict[str, NDArray[np.float64]] | float = threshold
     if initial_quality is not None:
         goals = smoothing_goals(initial_quality, threshold, tolerance)
@@ -108,8 +105,9 @@ def smooth_posed_model(
         free,
         sliding_nodes=sliding,
         target=goals,
+        options=opt,
+        position_guard=position_guard,
         progress=progress,
         cancel=cancel,
-        **options,
     )
     return posed.with_coords(coords), report

@@ -1,4 +1,9 @@
-"""Deck-to-deck posing: pose, measure, smooth, gate and report (what ``kneegui pose`` runs)."""
+"""The export: pose, relax, measure, smooth, gate and report.
+
+:func:`pose_model` is the one posing path that writes a pose: ``kneegui pose``, the GUI's
+Relax + smooth, the benchmarks and the scripts all call it, so they choose the fixed parts,
+solve the bones and word the warnings the same way.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +14,16 @@ from typing import Any
 
 import numpy as np
 
+from kneegui.geometry.axes import measure_flexion
 from kneegui.model import SOLID_TYPES, Model
 from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
 from kneegui.quality.metrics import QualityResult
-from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
-from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
+from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE, BoneOverlap
+from kneegui.reposition.repositioner import (
+    SOFT_ROLES,
+    Repositioner,
+    tissue_in_bones_warnings,
+)
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -80,6 +90,15 @@ def _volume_change(
     }
 
 
+def pose_warnings(overlaps: list[BoneOverlap], in_bones: dict[str, Any]) -> list[str]:
+    """The pose's warnings, one line each (the report's, the CLI's and the GUI's status line):
+    a bone reaching into another deeper than it did at rest (the kinematics do not suit these
+    bones: axes, landmarks or tables, and tissue between them is crushed), then each bone with
+    soft tissue inside it."""
+    warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
+    return warnings + tissue_in_bones_warnings(in_bones)
+
+
 def pose_model(
     repositioner: Repositioner,
     flexion_deg: float,
@@ -118,62 +137,52 @@ def pose_model(
     timings["quality_initial"] = time.perf_counter() - t
     report_progress(0.05, "posing")
 
-    def relax_progress(fraction: float, message: str) -> None:
-        report_progress(0.05 + 0.45 * fraction, message)
+    def improve_progress(fraction: float, message: str) -> None:
+        report_progress(0.05 + 0.9 * fraction, message)
 
-    result = repositioner.pose_detailed(flexion_deg, progress=relax_progress, cancel=cancel)
-    timings["pose"] = result.timings_s["total"]
-    posed = model.with_coords(result.coords)
+    result = repositioner.pose_detailed(flexion_deg, remeasure=False, relax=False)
+    coords, improved = repositioner.improve(
+        result.coords,
+        result.bone_pose,
+        relax=repositioner.options.relax,
+        smooth=smooth,
+        progress=improve_progress,
+        cancel=cancel,
+    )
+    relaxation, smoothing = improved.relaxation, improved.smoothing
+    achieved = measure_flexion(improved.relaxed, setup)
+    # the mapping's stages (pose_bones, pose_blend, ...) and the relaxation's, as before
+    timings["pose_relax"] = 0.0 if relaxation is None else relaxation.seconds
+    timings["pose"] = result.timings_s["total"] + timings["pose_relax"]
+    posed = model.with_coords(improved.relaxed)
     t = time.perf_counter()
     posed_q = compute_quality(posed.coords, posed.blocks)
     timings["quality_posed"] = time.perf_counter() - t
     soft_parts = set(setup.parts_of(*SOFT_ROLES))
     quality: dict[str, Any] = {"initial": _stats(model, initial_q), "posed": _stats(posed, posed_q)}
     final, final_q = posed, posed_q
-    smoothing = None
-    if smooth:
-        from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
-
-        def smoothing_progress(fraction: float, message: str) -> None:
-            report_progress(0.5 + 0.45 * fraction, message)
-
-        t = time.perf_counter()
-        fixed_parts = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
-        fixed_parts |= set(setup.unassigned_parts)
-        movable = soft_parts - set(setup.parts_of("skin"))
-        final, smooth_report = smooth_posed_model(
-            posed,
-            sorted(movable),
-            sorted(fixed_parts),
-            initial_q,
-            progress=smoothing_progress,
-            cancel=cancel,
-            position_guard=repositioner.bone_depth_guard(posed.coords, result.bone_pose),
-        )
-        timings["smoothing"] = time.perf_counter() - t
+    if smoothing is not None:
+        timings["smoothing"] = smoothing.seconds
+        final = model.with_coords(coords)
         final_q = compute_quality(final.coords, final.blocks)
         quality["smoothed"] = _stats(final, final_q)
-        smoothing = smooth_report.to_dict()
     summary = summarize_quality(final, final_q, initial=initial_q)
     reasons = quality_gate(summary)
     overlaps = repositioner.bone_overlap(result.bone_pose)
-    # a bone reaching into another deeper than it did at rest: the kinematics do not suit
-    # these bones (axes, landmarks or tables), and tissue between them is crushed
-    warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
-    warnings += tissue_in_bones_warnings(in_bones)
+    warnings = pose_warnings(overlaps, in_bones)
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,
         "target_flexion": float(flexion_deg),
-        "achieved_flexion": result.achieved_flexion_deg,
+        "achieved_flexion": float(achieved),
         "quality": quality,
         "volume_change": _volume_change(final, final_q, initial_q, soft_parts),
         "gate": {"passed": not reasons, "reasons": reasons},
-        "relaxation": None if result.relaxation is None else result.relaxation.to_dict(),
-        "smoothing": smoothing,
+        "relaxation": None if relaxation is None else relaxation.to_dict(),
+        "smoothing": None if smoothing is None else smoothing.to_dict(),
         "skin": None
         if result.skin is None
         else {

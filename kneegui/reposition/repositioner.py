@@ -9,13 +9,11 @@ Methods (``RepositionOptions.method``), compared in docs/repositioning.md:
 ``"blend"``
     Every soft-tissue node follows a blend of the bones' rigid motions with harmonic weights
     (see :mod:`kneegui.reposition.rigid_blend`); no tetrahedron spans the joint, so nothing shears.
-``"hybrid"``
-    Skin by contours as in the paper; every other soft node by the rigid blend plus the
-    barycentric interpolation of how far the contour skin departs from the blend.
 
-Whatever the method, :meth:`Repositioner.pose_detailed` (what the export runs) then relaxes the
-tissue the mapping degraded, untangling inverted elements and keeping tissue out of the bones
-(:mod:`kneegui.reposition.relax`); :meth:`Repositioner.pose` (the live slider) skips that.
+Whatever the method, the export then improves the tissue the mapping degraded
+(:meth:`Repositioner.improve`: the mesh-improvement chain of :mod:`kneegui.meshopt.chain` in the
+region :mod:`kneegui.reposition.relax` sets up, untangling inverted elements and keeping tissue
+out of the bones); :meth:`Repositioner.pose` (the live slider) skips that.
 """
 
 from __future__ import annotations
@@ -32,10 +30,12 @@ from scipy.spatial import cKDTree
 from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
+from kneegui.meshopt.chain import ImprovementOptions, ImprovementReport, improve_region
 from kneegui.meshopt.quality_optimiser import quality_aims
-from kneegui.meshopt.smoothing_pipeline import smoothing_goals
+from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 from kneegui.model import Model
 from kneegui.quality import compute_quality
+from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
@@ -43,6 +43,7 @@ from kneegui.reposition.embedding import Embedding, embed_nodes
 from kneegui.reposition.patella_tracking import PatellaSeating
 from kneegui.reposition.relax import (
     ElasticRelaxation,
+    RelaxedRegion,
     RelaxOptions,
     RelaxReport,
     corner_tetrahedra,
@@ -67,13 +68,23 @@ from kneegui.setup.format import JointSetup
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.
 BAND_ROLES = ("ligament", "meniscus", "tendon")
-METHODS = ("paper", "blend", "hybrid")
+METHODS = ("paper", "blend")
 SEGMENTS = ("femur", "tibia", "patella", "fixed")
 
 #: Supported target flexion range (degrees).
 FLEXION_RANGE = (-10.0, 150.0)
 
 ProgressCallback = Callable[[float, str], None]
+
+
+def smoothing_parts(setup: JointSetup) -> tuple[list[int], list[int]]:
+    """The parts the export's smoothing may move (soft tissue less the skin, which keeps its
+    mapped and relaxed surface) and the parts whose nodes stay (bones, ``fixed`` and unassigned
+    parts, as :func:`classify_nodes` keeps them)."""
+    fixed = set(setup.parts_of("femur", "tibia", "fibula", "patella", "fixed"))
+    fixed |= set(setup.unassigned_parts)
+    movable = set(setup.parts_of(*SOFT_ROLES)) - set(setup.parts_of("skin"))
+    return sorted(movable), sorted(fixed)
 
 
 def tissue_in_bones_warnings(found: Mapping[str, Any]) -> list[str]:
@@ -106,7 +117,7 @@ class RepositionOptions:
     Attributes
     ----------
     method : str
-        ``"paper"``, ``"blend"`` or ``"hybrid"``.
+        ``"paper"`` or ``"blend"``.
     zone_factor : float
         Parallelizing zone length as a multiple of the skin radius at the joint.
     weight_shape : str
@@ -126,15 +137,22 @@ class RepositionOptions:
         export); :meth:`Repositioner.pose` never does.
     relax_reach : float
         Only soft-tissue nodes within this many mean condyle radii of the F-E axis may be
-        relaxed (bounds the precompute on large models). 7 would let the relaxation reach
-        more of the thigh and calf flesh whose mapped volume changes most (the default demo at
-        90 deg with ``RelaxOptions.volume_change=0.1``: 3 soft solids changed by more than
-        25 % instead of 20) but left a node of the small demo 1.1 mm inside the fibula at
-        90 deg (measured, not kept).
+        relaxed (bounds the precompute on large models; 7 was measured and not kept,
+        docs/repositioning.md).
     relax_region : float
         The relaxed region reaches this many mean condyle radii around the degraded tissue.
-    relaxation : RelaxOptions
-        Parameters of the relaxation.
+    improvement : ImprovementOptions
+        The mesh-improvement chain's stages after the mapping (:mod:`kneegui.meshopt.chain`):
+        the untangling energy, the quality optimisation and the smoothing.
+    volume_change : float or None
+        In the quality optimisation, every soft solid element aims to keep its volume within
+        ``1 + volume_change`` times its initial volume, either way (None: no limit, and the
+        optimiser may shrink an element whose proportions stay good). Tighter aims trade volume
+        against the bone contact (docs/repositioning.md, known limits).
+    contour_margin : float or None
+        In the quality optimisation, every skin contour keeps at least this far (model units)
+        beyond the plane of its neighbour nearer the joint, so that no contour crosses another;
+        None lets them cross, which gives the crease behind a deeply flexed knee more room.
     contact_reach, contact_clearance
         Soft-tissue nodes within ``contact_reach`` mean condyle radii of a bone slide on it but
         are kept out of it, at their rest clearance up to ``contact_clearance`` (model units);
@@ -176,7 +194,9 @@ class RepositionOptions:
     relax: bool = True
     relax_reach: float = 5.0
     relax_region: float = 1.0
-    relaxation: RelaxOptions = field(default_factory=RelaxOptions)
+    improvement: ImprovementOptions = field(default_factory=ImprovementOptions)
+    volume_change: float | None = 0.5
+    contour_margin: float | None = 0.5
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -328,32 +348,27 @@ class Repositioner:
         self._flesh_embedding: Embedding | None = None
         self._band_embedding: Embedding | None = None
         self._weights: NDArray[np.float64] | None = None
-        if method in ("paper", "hybrid"):
+        if method == "paper":
             if len(self.groups.skin) < 4:
                 raise SetupError(
-                    "the contour methods need skin nodes: give the skin parts the "
+                    "the paper method needs skin nodes: give the skin parts the "
                     "'skin' role, or use method 'blend'",
                     key="roles.skin",
                 )
             t = self._stage("skin contours", 0.2)
             self.contours = self._build_contours()
             self._end("skin contours", t)
-        if method in ("blend", "hybrid"):
+        if method == "blend":
             t = self._stage("harmonic weights", 0.4)
             self._weights = self._harmonic_weights()
             self._end("harmonic weights", t)
-        if method in ("paper", "hybrid"):
+        if method == "paper":
             t = self._stage("delaunay embedding", 0.7)
             control = np.concatenate(
                 [self.groups.bone_surface, self.groups.skin, self._fixed_surface()]
             )
-            embedded = (
-                self.groups.flesh
-                if method == "paper"
-                else np.concatenate([self.groups.flesh, self.groups.band])
-            )
-            self._flesh_embedding = embed_nodes(coords, control, embedded)
-            if method == "paper" and len(self.groups.band):
+            self._flesh_embedding = embed_nodes(coords, control, self.groups.flesh)
+            if len(self.groups.band):
                 self._band_embedding = embed_nodes(coords, self.groups.skin, self.groups.band)
             self._end("delaunay embedding", t)
         self._surfaces: dict[str, BoneSurfaceDistance] | None = None  # built on first use
@@ -375,6 +390,7 @@ class Repositioner:
         self._overlap_check: BoneOverlapCheck | None = None
         self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
         self._order_contours: SkinContours | None = None  # for blend: the relaxation's order
+        self._initial_quality: QualityResult | None = None  # the smoothing's reference
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -502,10 +518,11 @@ class Repositioner:
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         free = self._soft_near_joint()
         initial = compute_quality(model.coords, model.blocks)
-        options = self.options.relaxation
+        options = self.options.improvement.relax or RelaxOptions()
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
-        contours = self._relaxed_contours() if options.contour_margin is not None else None
+        margin = self.options.contour_margin
+        contours = self._relaxed_contours() if margin is not None else None
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
@@ -518,14 +535,14 @@ class Repositioner:
             region_radius=self.options.relax_region * size,
             sliding=g.skin,
             blocks=model.blocks,
-            goals=smoothing_goals(initial),
             aims=quality_aims(
                 initial,
                 model.blocks,
                 rest_coords=model.coords,
-                volume_change=options.volume_change,
+                volume_change=self.options.volume_change,
             ),
             skin_contours=contours,
+            contour_margin=margin,
         )
 
     def _relaxed_contours(self) -> SkinContours | None:
@@ -651,13 +668,13 @@ class Repositioner:
         skin_report = None
         method = self.options.method
         g = self.groups
-        if method in ("blend", "hybrid"):
+        if method == "blend":
             twists = np.stack([log_rigid(tr[s]) if s != "fixed" else np.zeros(6) for s in SEGMENTS])
             soft = g.soft
             out[soft] = exp_twists_apply(self._weights @ twists, coords0[soft])
         t2 = time.perf_counter()
         timings["blend"] = t2 - t1
-        if method in ("paper", "hybrid"):
+        if method == "paper":
             skin_xyz, skin_report = pose_skin(
                 self.contours,
                 coords0,
@@ -675,17 +692,11 @@ class Repositioner:
             t3 = time.perf_counter()
             timings["skin"] = t3 - t2
             emb = self._flesh_embedding
-            if method == "paper":
-                out[g.skin] = skin_xyz
-                out[emb.nodes] = emb.apply(out[emb.control])
-                if self._band_embedding is not None:
-                    be = self._band_embedding
-                    out[be.nodes] = be.apply(out[be.control])
-            else:
-                residual = np.zeros_like(out)
-                residual[g.skin] = skin_xyz - out[g.skin]
-                out[g.skin] = skin_xyz
-                out[emb.nodes] += emb.apply(residual[emb.control])
+            out[g.skin] = skin_xyz
+            out[emb.nodes] = emb.apply(out[emb.control])
+            if self._band_embedding is not None:
+                be = self._band_embedding
+                out[be.nodes] = be.apply(out[be.control])
             timings["soft tissue"] = time.perf_counter() - t3
         if self._contact is not None:
             t4 = time.perf_counter()
@@ -705,61 +716,118 @@ class Repositioner:
     def relax(
         self,
         coords: NDArray[np.float64],
-        bone: BonePose | float,
+        bone: BonePose,
         progress: ProgressCallback | None = None,
         cancel: Callable[[], bool] | None = None,
-    ) -> tuple[NDArray[np.float64], RelaxReport]:
-        """Relax the soft tissue of a pose (see :mod:`kneegui.reposition.relax`).
-
-        Parameters
-        ----------
-        coords : (N, 3) ndarray
-            All node coordinates of a pose (e.g. :meth:`pose`); not modified.
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) it was solved for.
-        progress, cancel : callable, optional
+    ) -> tuple[NDArray[np.float64], RelaxReport | None]:
+        """Relax the soft tissue of a pose: :meth:`improve` without the smoothing.
 
         Returns
         -------
         coords : (N, 3) ndarray
             Relaxed coordinates (bones and fixed nodes unchanged).
-        report : RelaxReport
+        report : RelaxReport or None
+            None when ``options.improvement.relax`` is None.
         """
-        if self.relaxation is None:  # built on first use
-            t = time.perf_counter()
-            self.relaxation = self._elastic_relaxation()
-            self.timings_s["relaxation"] = time.perf_counter() - t
-        if not isinstance(bone, BonePose):
-            bone = self.bone_pose(float(bone))
-        if self._contact is None and self.options.relax_contact_reach > 0:
-            # push the tissue the mapping put into the bones back out first, spread through
-            # the tissue behind it: the relaxation then starts from a pose outside the bones
-            if self._relax_contact is None:
-                t = time.perf_counter()
-                self._relax_contact = self._bone_contact(self.options.relax_contact_reach)
-                self.timings_s["relaxation contact"] = time.perf_counter() - t
-            coords = np.array(coords, dtype=np.float64, copy=True)
-            self._relax_contact.resolve(coords, bone.transforms)
-        return self.relaxation.relax(coords, bone.transforms, progress, cancel)
+        coords, report = self.improve(coords, bone, smooth=False, progress=progress, cancel=cancel)
+        return coords, report.relaxation
 
-    def bone_depth_guard(
-        self, coords: NDArray[np.float64], bone: BonePose | float
-    ) -> BoneDepthGuard:
+    def improve(
+        self,
+        coords: NDArray[np.float64],
+        bone: BonePose,
+        *,
+        relax: bool = True,
+        smooth: bool = True,
+        progress: ProgressCallback | None = None,
+        cancel: Callable[[], bool] | None = None,
+    ) -> tuple[NDArray[np.float64], ImprovementReport]:
+        """Run the mesh-improvement chain (:func:`kneegui.meshopt.chain.improve_region`,
+        ``options.improvement``) on the soft tissue of a pose, in the region
+        :mod:`kneegui.reposition.relax` sets up: untangle, meet the quality aims, then (with
+        ``smooth``) smooth the soft tissue but the skin, with :meth:`bone_depth_guard`.
+
+        Parameters
+        ----------
+        coords : (N, 3) ndarray
+            All node coordinates of a pose (e.g. :meth:`pose`); not modified.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`), solved once per angle.
+        relax, smooth : bool
+            Run the untangling and quality stages, and the smoothing stage (each when
+            ``options.improvement`` has it).
+        progress, cancel : callable, optional
+
+        Returns
+        -------
+        coords : (N, 3) ndarray
+            Improved coordinates (bones and fixed nodes unchanged).
+        report : ImprovementReport
+        """
+        options = self.options.improvement
+        if not smooth:
+            options = replace(options, smooth=None)
+        if not relax:
+            options = replace(options, relax=None)
+        relaxation = None
+        if options.relax is not None:
+            if self.relaxation is None:  # built on first use
+                t = time.perf_counter()
+                self.relaxation = self._elastic_relaxation()
+                self.timings_s["relaxation"] = time.perf_counter() - t
+            relaxation = self.relaxation
+            # the relaxation was built with the method's choice of slide_skin
+            options = replace(options, relax=relaxation.options)
+            if self._contact is None and self.options.relax_contact_reach > 0:
+                # push the tissue the mapping put into the bones back out first, spread
+                # through the tissue behind it: the relaxation then starts from a pose outside
+                # the bones
+                if self._relax_contact is None:
+                    t = time.perf_counter()
+                    self._relax_contact = self._bone_contact(self.options.relax_contact_reach)
+                    self.timings_s["relaxation contact"] = time.perf_counter() - t
+                coords = np.array(coords, dtype=np.float64, copy=True)
+                self._relax_contact.resolve(coords, bone.transforms)
+        region = RelaxedRegion(relaxation, bone.transforms, self._smoothing_stage(bone))
+        return improve_region(coords, region, options, progress, cancel)
+
+    def _smoothing_stage(self, bone: BonePose):
+        """The chain's smoothing for a pose: the soft tissue but the skin moves, bones, fixed
+        and unassigned parts stay (:func:`smoothing_parts`), no node goes deeper into a bone
+        (:meth:`bone_depth_guard`), elements aim at their initial quality."""
+        movable, fixed = smoothing_parts(self.setup)
+
+        def smooth(coords, options, progress, cancel):
+            if self._initial_quality is None:
+                self._initial_quality = compute_quality(self.model.coords, self.model.blocks)
+            smoothed, report = smooth_posed_model(
+                self.model.with_coords(coords),
+                movable,
+                fixed,
+                self._initial_quality,
+                options=options,
+                position_guard=self.bone_depth_guard(coords, bone),
+                progress=progress,
+                cancel=cancel,
+            )
+            return smoothed.coords, report
+
+        return smooth
+
+    def bone_depth_guard(self, coords: NDArray[np.float64], bone: BonePose) -> BoneDepthGuard:
         """A smoother position guard that keeps the tissue of a pose out of the bones.
 
         Parameters
         ----------
         coords : (N, 3) ndarray
             The pose about to be smoothed.
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) to solve it for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`).
         """
-        if not isinstance(bone, BonePose):
-            bone = self.bone_pose(float(bone))
         return BoneDepthGuard(self._bone_surfaces(), bone.transforms, coords)
 
     def tissue_in_bones(
-        self, coords: NDArray[np.float64], bone: BonePose | float, tolerance: float | None = None
+        self, coords: NDArray[np.float64], bone: BonePose, tolerance: float | None = None
     ) -> dict[str, Any]:
         """How much soft tissue of a pose lies inside the bones.
 
@@ -771,8 +839,8 @@ class Repositioner:
         ----------
         coords : (N, 3) ndarray
             The pose.
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) to solve it for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`).
         tolerance : float, optional
             Depth (model units) beyond which a node counts as inside; default
             :data:`TISSUE_IN_BONE_TOLERANCE` condyle radii.
@@ -803,19 +871,17 @@ class Repositioner:
             "bones": per_bone,
         }
 
-    def bone_overlap(self, bone: BonePose | float) -> list[BoneOverlap]:
+    def bone_overlap(self, bone: BonePose) -> list[BoneOverlap]:
         """How deep each rigid segment's surface lies inside another's in a pose (deepest
         first; :mod:`kneegui.reposition.bone_overlap`). The check is built on first use.
 
         Parameters
         ----------
-        bone : BonePose or float
-            The bones' pose, or the flexion (degrees) to solve it for.
+        bone : BonePose
+            The bones' pose (:meth:`bone_pose`).
         """
         if self._overlap_check is None:
             self._overlap_check = BoneOverlapCheck(self._bone_surfaces())
-        if not isinstance(bone, BonePose):
-            bone = self.bone_pose(float(bone))
         return self._overlap_check.measure(bone.transforms)
 
     def with_options(self, **changes: Any) -> Repositioner:

@@ -19,6 +19,7 @@ from kneegui.geometry import measure_flexion
 from kneegui.io.lsdyna import read_deck
 from kneegui.ligaments import ligament_short_name
 from kneegui.quality import compute_quality
+from kneegui.reposition.pipeline import pose_model
 
 from .conftest import wait_idle
 
@@ -313,13 +314,16 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     wait_idle(qtbot, ws, timeout=150)
     assert demo_window.last_error is None, demo_window.last_error
     assert ws.smoothed
+    # one posing path: Relax + smooth gives exactly what `kneegui pose` writes at that angle
+    assert ws.flexion == 90.0
+    assert np.array_equal(ws.coords, pose_model(ws.poser, 90.0).model.coords)
     # the status line says what the relaxation, its quality optimisation and the smoother did
     assert any("relaxed" in m and "quality optimised: worst Jacobian" in m for m in messages), (
         messages
     )
     assert not any("warning" in m and "reaches" in m for m in messages), messages  # no overlap
     # tissue left inside a bone is reported, as the engine counts it
-    in_bones = ws.poser.tissue_in_bones(ws.coords, 90.0)["nodes"]
+    in_bones = ws.poser.tissue_in_bones(ws.coords, ws.poser.bone_pose(90.0))["nodes"]
     assert any("inside the" in m for m in messages) == (in_bones > 0), messages
     after = ws.quality()
     assert after.n_inverted == 0 < before.n_inverted  # the relaxation untangles the pose

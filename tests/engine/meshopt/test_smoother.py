@@ -8,6 +8,7 @@ import pytest
 
 from kneegui.errors import Cancelled
 from kneegui.meshopt import (
+    SmoothOptions,
     degraded_elements,
     smooth_mesh,
     smooth_posed_model,
@@ -85,16 +86,14 @@ def test_degraded_elements_needs_to_be_worse_than_initial(block_model):
 
 
 # ---------------------------------------------------------------------- guarantees
-@pytest.mark.parametrize(
-    ("seed", "optimizer"), [(0, "batched"), (1, "batched"), (2, "scipy"), (3, "scipy")]
-)
-def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, optimizer, block_model):
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, block_model):
     model = block_model(7, 7, 7, bone_layers=1)
     posed = _jiggle(model, seed)
     q_before = compute_quality(posed.coords, posed.blocks)
     free = smoothing_free_nodes(posed, [2], [1], degraded_elements(q_before), rings=1)
     coords_before = posed.coords.copy()
-    new, report = smooth_mesh(posed, None, free, optimizer=optimizer)
+    new, report = smooth_mesh(posed, None, free)
     assert np.array_equal(posed.coords, coords_before)  # input untouched
     assert np.array_equal(new[~free], posed.coords[~free])  # fixed nodes exactly in place
     q_after = compute_quality(new, posed.blocks)
@@ -113,12 +112,11 @@ def test_smoothing_never_worsens_worst_jacobian_nor_moves_fixed_nodes(seed, opti
     assert q_after["hex8"].warpage.max() <= max(warp_before, 15.0) + 1e-9
 
 
-@pytest.mark.parametrize("optimizer", ["batched", "scipy"])
-def test_smoothing_is_deterministic(optimizer, block_model):
+def test_smoothing_is_deterministic(block_model):
     model = block_model(8, 8, 8)
     posed = _swirl(model, 2.0, 2.5)
-    a, ra = smooth_posed_model(posed, [2], [1], initial=model, optimizer=optimizer)
-    b, rb = smooth_posed_model(posed, [2], [1], initial=model, optimizer=optimizer)
+    a, ra = smooth_posed_model(posed, [2], [1], initial=model)
+    b, rb = smooth_posed_model(posed, [2], [1], initial=model)
     assert np.array_equal(a.coords, b.coords)
     assert {k: v for k, v in ra.to_dict().items() if k != "seconds"} == {
         k: v for k, v in rb.to_dict().items() if k != "seconds"
@@ -144,8 +142,7 @@ def test_smoothing_untangles_a_twisted_core_and_keeps_topology(block_model):
     assert np.array_equal(smoothed.coords[skin], posed.coords[skin])
 
 
-@pytest.mark.parametrize("optimizer", ["batched", "scipy"])
-def test_stage_two_alone_improves_the_worst_element(optimizer, block_model):
+def test_stage_two_alone_improves_the_worst_element(block_model):
     model = block_model(5, 5, 5, skin=False)
     c = model.coords.copy()
     node = np.flatnonzero(np.all(c == (2, 2, 3), axis=1))[0]
@@ -154,7 +151,7 @@ def test_stage_two_alone_improves_the_worst_element(optimizer, block_model):
     free = np.zeros(model.n_nodes, dtype=bool)
     free[node] = True
     q0 = compute_quality(posed.coords, posed.blocks)
-    new, report = smooth_mesh(posed, None, free, max_sweeps=0, optimizer=optimizer)
+    new, report = smooth_mesh(posed, None, free, options=SmoothOptions(max_sweeps=0))
     q1 = compute_quality(new, posed.blocks)
     assert report.stage1_sweeps == 0 and report.stage2_improved >= 1
     assert q1.worst_jacobian() > q0.worst_jacobian() + 0.3
@@ -391,8 +388,7 @@ def test_report_counts_inverted_elements_out_of_reach(block_model):
     assert compute_quality(new, posed.blocks).n_inverted == 0
 
 
-@pytest.mark.parametrize("optimizer", ["batched", "scipy"])
-def test_position_guard_is_obeyed(optimizer, block_model):
+def test_position_guard_is_obeyed(block_model):
     model = block_model(7, 7, 7, bone_layers=1)
     posed = _jiggle(model, 0)
     q_before = compute_quality(posed.coords, posed.blocks)
@@ -405,15 +401,31 @@ def test_position_guard_is_obeyed(optimizer, block_model):
         calls.append(len(nodes))
         return coords[nodes, 0] <= start[nodes, 0] + 0.05
 
-    free_run, _ = smooth_mesh(posed, None, free, optimizer=optimizer)
+    free_run, _ = smooth_mesh(posed, None, free)
     assert (free_run[:, 0] > start[:, 0] + 0.05).any()  # unguarded, some node crosses it
-    new, report = smooth_mesh(posed, None, free, optimizer=optimizer, position_guard=guard)
+    new, report = smooth_mesh(posed, None, free, position_guard=guard)
     assert calls and report.moved_nodes > 0
     assert (new[:, 0] <= start[:, 0] + 0.05 + 1e-12).all()
     assert compute_quality(new, posed.blocks).worst_jacobian() >= q_before.worst_jacobian()
     # a guard that refuses everything leaves the mesh as it was
     frozen, report = smooth_mesh(
-        posed, None, free, optimizer=optimizer, position_guard=lambda n, c: np.zeros(len(n), bool)
+        posed, None, free, position_guard=lambda n, c: np.zeros(len(n), bool)
     )
     np.testing.assert_array_equal(frozen, posed.coords)
     assert report.moved_nodes == 0
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"max_sweeps": -1},
+        {"passes": 0},
+        {"relaxation": ()},
+        {"relaxation": (1.0, 1.5)},
+        {"aspect_limit": 0.5},
+        {"warpage_limit": 0.0},
+    ],
+)
+def test_smooth_options_are_validated_where_they_are_made(bad):
+    with pytest.raises(ValueError, match="SmoothOptions"):
+        SmoothOptions(**bad)

@@ -97,9 +97,9 @@ def test_tissue_in_bones_agrees_with_the_independent_check(
     small_leg, small_setup, small_repositioner
 ):
     rep, model = small_repositioner, small_leg.model
-    assert rep.tissue_in_bones(model.coords, rep.initial_flexion)["nodes"] == 0
+    assert rep.tissue_in_bones(model.coords, rep.bone_pose(rep.initial_flexion))["nodes"] == 0
     mapped = rep.pose(90.0)  # the slider's mapping carries tissue into femur and tibia
-    found = rep.tissue_in_bones(mapped, 90.0)
+    found = rep.tissue_in_bones(mapped, rep.bone_pose(90.0))
     ml = rep.axes.fe_axis.direction
     for name, roles in (("femur", ("femur",)), ("tibia", ("tibia", "fibula"))):
         tris = surface_triangles(model, small_setup.parts_of(*roles), shells=False)

@@ -1,0 +1,178 @@
+"""The mesh-improvement chain, written once: untangle, then meet the quality aims, then smooth.
+
+A posed mesh is made solver-ready by three stages, each with its own options:
+
+1. **untangle** (:class:`~kneegui.meshopt.foldover.RelaxOptions`): the foldover-free energy
+   (:mod:`kneegui.meshopt.foldover`) over the degraded region, until no corner is inverted;
+   when stage 2 follows it stops as soon as nothing is inverted;
+2. **quality** (:class:`~kneegui.meshopt.quality_optimiser.QualityOptions`, ``None`` skips it):
+   every node around an element that misses its aims moves, all together
+   (:func:`~kneegui.meshopt.quality_optimiser.optimise_quality`); it runs only on an untangled
+   region;
+3. **smooth** (:class:`~kneegui.meshopt.smoother.SmoothOptions`, ``None`` skips it): the
+   quality-guarded smoother on what is still degraded (:func:`~kneegui.meshopt.smooth_mesh`).
+
+The region (which nodes are free, which constraints hold them: bone contact, skin order, a
+position guard) is the caller's: :func:`improve_region` takes it as an :class:`ImprovementRegion`,
+so that ``kneegui.reposition`` only says where and how tissue may move, and this module says in
+which order and with what.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kneegui.meshopt.foldover import RelaxOptions, RelaxReport
+from kneegui.meshopt.quality_optimiser import QualityOptimisationReport, QualityOptions
+from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
+
+ProgressCallback = Callable[[float, str], None]
+CancelCallback = Callable[[], bool]
+
+
+def _export_quality() -> QualityOptions:
+    """The quality stage's parameters for a posed region (docs/repositioning.md)."""
+    return QualityOptions(
+        rounds=15, iterations_per_round=150, constraint_stiffness=100.0, volume_weight=3.0
+    )
+
+
+@dataclass(frozen=True)
+class ImprovementOptions:
+    """One options dataclass per stage of the chain (``None``: the stage does not run).
+
+    Attributes
+    ----------
+    relax : RelaxOptions or None
+        Stage 1, the untangling energy (None skips stages 1 and 2: the mapped pose is only
+        smoothed).
+    quality : QualityOptions or None
+        Stage 2, the quality optimisation.
+    smooth : SmoothOptions or None
+        Stage 3, the smoother.
+    """
+
+    relax: RelaxOptions | None = field(default_factory=RelaxOptions)
+    quality: QualityOptions | None = field(default_factory=_export_quality)
+    smooth: SmoothOptions | None = field(default_factory=SmoothOptions)
+
+
+@dataclass
+class ImprovementReport:
+    """What the chain did.
+
+    Attributes
+    ----------
+    relaxation : RelaxReport or None
+        Stages 1 and 2 (``relaxation.quality`` is stage 2's report, None when it did not run);
+        None when they did not run.
+    smoothing : SmoothingReport or None
+        Stage 3 (None when it did not run).
+    relaxed : (N, 3) ndarray
+        The coordinates after stages 1 and 2, before the smoothing.
+    """
+
+    relaxation: RelaxReport | None
+    smoothing: SmoothingReport | None
+    relaxed: NDArray[np.float64]
+
+
+class ImprovementRegion(Protocol):
+    """Where and how the chain may move nodes: the caller's region with its constraints."""
+
+    def untangle(
+        self,
+        coords: NDArray[np.float64],
+        options: RelaxOptions,
+        stop_when_untangled: bool,
+        progress: ProgressCallback,
+        cancel: CancelCallback,
+    ) -> tuple[NDArray[np.float64], RelaxReport, bool]:
+        """Stage 1: the new coordinates, its report, and whether stage 2 may follow (the
+        region is untangled, and there is a region)."""
+        ...
+
+    def optimise(
+        self,
+        coords: NDArray[np.float64],
+        options: QualityOptions,
+        progress: ProgressCallback,
+        cancel: CancelCallback,
+    ) -> tuple[NDArray[np.float64], QualityOptimisationReport | None]:
+        """Stage 2 (None: nothing to optimise)."""
+        ...
+
+    def smooth(
+        self,
+        coords: NDArray[np.float64],
+        options: SmoothOptions,
+        progress: ProgressCallback,
+        cancel: CancelCallback,
+    ) -> tuple[NDArray[np.float64], SmoothingReport]:
+        """Stage 3."""
+        ...
+
+
+#: Share of the progress bar of each stage (the smoothing's only when it runs).
+_SPANS = {"untangle": (0.0, 0.8), "quality": (0.8, 0.9), "smooth": (0.5, 1.0)}
+
+
+def improve_region(
+    coords: NDArray[np.float64],
+    region: ImprovementRegion,
+    options: ImprovementOptions,
+    progress: ProgressCallback | None = None,
+    cancel: CancelCallback | None = None,
+) -> tuple[NDArray[np.float64], ImprovementReport]:
+    """Run the chain (module docstring) on ``region``.
+
+    Parameters
+    ----------
+    coords : (N, 3) ndarray
+        The pose to improve (not modified).
+    region : ImprovementRegion
+        The free nodes and their constraints, per stage.
+    options : ImprovementOptions
+    progress, cancel : callable, optional
+        ``progress(fraction, message)``; ``cancel()`` returns True to stop (the stages raise
+        :class:`kneegui.errors.Cancelled`).
+
+    Returns
+    -------
+    coords : (N, 3) ndarray
+        A new array; only the region's free nodes moved.
+    report : ImprovementReport
+    """
+    report_progress = progress or (lambda fraction, message: None)
+    should_cancel = cancel or (lambda: False)
+    smoothing = options.smooth is not None
+    squeeze = 0.5 if smoothing else 1.0  # the relaxation's share when the smoothing follows
+
+    def span(stage: str) -> ProgressCallback:
+        lo, hi = _SPANS[stage]
+        if stage != "smooth":
+            lo, hi = lo * squeeze, hi * squeeze
+        return lambda fraction, message: report_progress(lo + (hi - lo) * fraction, message)
+
+    x, relaxation = np.array(coords, dtype=np.float64, copy=True), None
+    if options.relax is not None:
+        t0 = time.perf_counter()
+        optimise_next = options.quality is not None
+        x, relaxation, untangled = region.untangle(
+            coords, options.relax, optimise_next, span("untangle"), should_cancel
+        )
+        if optimise_next and untangled:
+            x, relaxation.quality = region.optimise(x, options.quality, span("quality"), cancel)
+        relaxation.seconds = time.perf_counter() - t0
+    relaxed = x
+    smoothed = None
+    if smoothing:
+        x, smoothed = region.smooth(relaxed, options.smooth, span("smooth"), should_cancel)
+    report_progress(1.0, "mesh improved")
+    return x, ImprovementReport(relaxation, smoothed, relaxed)

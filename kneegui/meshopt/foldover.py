@@ -1,0 +1,421 @@
+"""The foldover-free energy: untangling a mesh region by minimising a distortion barrier.
+
+Every solid element is cut into corner tetrahedra (the three edges through each corner, the same
+corners as the corner Jacobian of QUALITY.md); for each, ``J`` maps the corner's initial edges to
+its current edges, and the energy is the foldover-free distortion of Garanzha et al. (2021),
+*Foldover-free maps in 50 lines of code*, ACM Trans. Graph. 40(4)::
+
+    f(J) = (1 - theta) |J|^2 / chi(det J)^(2/3) + theta (det J^2 + 1) / chi(det J)
+    chi(D) = (D + sqrt(eps^2 + D^2)) / 2
+
+every corner weighted the same (or by its initial volume). The first term penalises change of
+shape, the second change of volume; both are smallest at the initial shape (``J`` a rotation).
+As ``eps`` -> 0 the energy becomes a barrier that no corner can cross into inversion; the
+schedule of ``eps`` from the paper (:func:`next_eps`) untangles inverted corners. Minimised with
+L-BFGS (:func:`kneegui.meshopt.lbfgs.minimize_lbfgs`) on Jacobi-scaled variables
+(:func:`penalised_objective`), with half-space constraints (e.g. bone contact) as a penalty and
+sliding nodes held in their tangent planes. Shells lying on solid faces add tetrahedra to a
+virtual apex inside the solid and a barrier on their own corner determinants
+(:func:`quad_barrier`), so they cannot fold or turn into darts.
+
+The compiled kernel (:mod:`kneegui.meshopt.foldover_kernel`, Numba, a dependency) computes the
+energy; :meth:`FoldoverEnergy.energy_numpy` is the NumPy reference it is tested against.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from kneegui.meshopt.foldover_kernel import foldover_free_energy
+from kneegui.meshopt.quality_optimiser import QualityOptimisationReport
+from kneegui.meshopt.smoother import corner_determinants
+
+
+def edge_matrices(x: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    """(C, 3, 3) edge matrices: column k is x[tets[:, k+1]] - x[tets[:, 0]]."""
+    base = x[tets[:, 0]]
+    return np.stack([x[tets[:, k]] - base for k in (1, 2, 3)], axis=2)
+
+
+def regularised_det(det: NDArray[np.float64], eps: float) -> tuple[NDArray, NDArray]:
+    """Garanzha's regularised determinant ``(D + sqrt(eps^2 + D^2)) / 2`` and its derivative,
+    in a form that does not cancel to zero for very negative ``D``."""
+    root = np.sqrt(eps * eps + det * det)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chi = np.where(det >= 0, 0.5 * (det + root), 0.5 * eps * eps / (root - det))
+    return np.maximum(chi, 1e-300), 0.5 * (1.0 + det / root)
+
+
+@dataclass(frozen=True)
+class RelaxOptions:
+    """Parameters of the foldover-free energy's stage (the untangling) and its region.
+
+    Attributes
+    ----------
+    volume_weight : float
+        ``theta``: weight of the volume term against the shape term (0..1).
+    uniform_weights : bool
+        Every corner counts the same (the mesh quality view: a small element matters as much as
+        a large one); otherwise corners are weighted by their initial volume (the elastic view).
+    shell_weight : float
+        Weight of a quad shell corner's barrier against a solid corner's energy.
+    seed_volume_ratio, seed_shape : float
+        A corner whose volume ratio ``det J`` is below ``seed_volume_ratio`` (or above its
+        inverse) or whose shape distortion is above ``seed_shape`` seeds the relaxed region.
+    rings : int
+        How many mesh edges the region grows from its seeds.
+    max_rounds : int
+        Rounds of (update eps and contact planes, then L-BFGS).
+    iterations_per_round : int
+        L-BFGS iterations per round.
+    eps_decrease : float
+        Smallest relative decrease of ``eps`` per round (Garanzha's ``sigma`` floor, 0.1 in the
+        paper; larger untangles in fewer rounds).
+    tolerance : float
+        Relative energy decrease below which the rounds stop (once nothing is inverted).
+    contact_stiffness, untangling_contact_stiffness : float
+        Penalty stiffness of the bone contact, relative to the elastic stiffness of a node:
+        final, and while elements are still inverted. A stiff contact during untangling
+        crushes the tissue pinched between two bones; once nothing is inverted the barrier
+        keeps every element valid and the stiffness is raised 4x per round to the final one.
+    contact_force_depth : float
+        Depth (model units) beyond which the contact force stops growing.
+    contact_band : float
+        Nodes closer to a bone than this (model units) get a contact plane.
+    contact_clearance : float
+        Distance from the bone surface the contact holds nodes at (model units).
+    restarts : int
+        How many times the rounds start again when corners are still inverted after
+        ``max_rounds``: the nodes of those corners go back to their posed positions and the
+        barrier is softened to ``restart_eps`` (the schedule can drive ``eps`` to its floor
+        while nodes pressed onto one point keep a corner at zero volume). The last restart
+        also frees those nodes from the bone contact.
+    restart_eps : float
+        ``eps`` a restart begins with.
+    slide_skin : bool or None
+        Skin nodes move only in the tangent plane of the pose being relaxed (the sliding nodes
+        given to :class:`ElasticRelaxation`; ``None`` slides them there too).
+        :class:`kneegui.reposition.Repositioner` resolves ``None`` by method: it slides
+        the skin for ``blend``, whose skin is the mapped surface, and frees it for ``paper``,
+        whose contour-placed skin can fold and must be free to unfold (docs/repositioning.md).
+    """
+
+    volume_weight: float = 0.5
+    uniform_weights: bool = True
+    shell_weight: float = 1.0
+    seed_volume_ratio: float = 0.3
+    seed_shape: float = 2.0
+    rings: int = 2
+    max_rounds: int = 20
+    iterations_per_round: int = 150
+    eps_decrease: float = 0.65
+    tolerance: float = 1e-4
+    contact_stiffness: float = 50.0
+    untangling_contact_stiffness: float = 3.0
+    contact_band: float = 3.0
+    contact_force_depth: float = 1.0
+    contact_clearance: float = 0.2
+    restarts: int = 2
+    restart_eps: float = 0.05
+    slide_skin: bool | None = None
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.volume_weight <= 1:
+            raise ValueError(
+                f"RelaxOptions.volume_weight must be in [0, 1], not {self.volume_weight}"
+            )
+        if self.max_rounds < 1 or self.iterations_per_round < 1 or self.restarts < 0:
+            raise ValueError(
+                "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1 and restarts >= 0"
+            )
+        if not 0 < self.eps_decrease < 1:
+            raise ValueError(
+                f"RelaxOptions.eps_decrease must be in (0, 1), not {self.eps_decrease}"
+            )
+
+
+@dataclass
+class RelaxReport:
+    """What the relaxation did."""
+
+    free_nodes: int = 0
+    corners: int = 0
+    rounds: int = 0
+    restarts: int = 0
+    contact_released: int = 0
+    iterations: int = 0
+    evaluations: int = 0
+    min_det_before: float = float("nan")
+    min_det_after: float = float("nan")
+    inverted_corners_before: int = 0
+    inverted_corners_after: int = 0
+    contact_nodes: int = 0
+    deepest_penetration: float = 0.0
+    seconds: float = 0.0
+    history: list[dict[str, float]] = field(default_factory=list)
+    quality: QualityOptimisationReport | None = None  # what the quality optimisation did
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready summary."""
+        out = dict(self.__dict__)
+        out.pop("history")
+        out["quality"] = None if self.quality is None else self.quality.to_dict()
+        return out
+
+
+def _cross3(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Row-wise cross products of (M, 3) arrays (np.cross costs more on short arrays)."""
+    return _cross_t(a.T, b.T).T
+
+
+def quad_barrier(
+    x: NDArray[np.float64],
+    quads: NDArray[np.int64],
+    rest: NDArray[np.float64],
+    weight: float,
+    eps: float,
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """Barrier on the quads' corner determinants relative to rest: ``(r^2 + 1) / chi(r)``.
+
+    Returns the energy, the gradient per quad node (Q, 4, 3) and the ratios r (4Q,).
+    """
+    p = [x[quads[:, i]] for i in range(4)]
+    u, v = p[2] - p[0], p[3] - p[1]
+    n = _cross3(u, v)
+    grad = np.zeros((len(quads), 4, 3))
+    total = 0.0
+    ratios = []
+    for i in range(4):
+        a = p[(i + 1) % 4] - p[i]
+        b = p[(i + 3) % 4] - p[i]
+        w = _cross3(a, b)
+        r = np.einsum("ij,ij->i", w, n) / rest[:, i]
+        chi, dchi = regularised_det(r, eps)
+        total += weight * float(np.sum((r * r + 1.0) / chi))
+        dr = (weight * (2.0 * r / chi - (r * r + 1.0) * dchi / (chi * chi)) / rest[:, i])[:, None]
+        ga = _cross3(b, n) * dr  # d/da of (a x b) . n
+        gb = _cross3(n, a) * dr
+        gu = _cross3(v, w) * dr  # d/du of (u x v) . w
+        gv = _cross3(w, u) * dr
+        grad[:, (i + 1) % 4] += ga
+        grad[:, (i + 3) % 4] += gb
+        grad[:, i] -= ga + gb
+        grad[:, 2] += gu
+        grad[:, 0] -= gu
+        grad[:, 3] += gv
+        grad[:, 1] -= gv
+        ratios.append(r)
+    return total, grad, np.concatenate(ratios)
+
+
+class FoldoverEnergy:
+    """The foldover-free energy of the corner tetrahedra touching a set of free nodes, in local
+    numbering: the real nodes they use (and the virtual nodes need) first, then the virtual
+    nodes.
+
+    Parameters
+    ----------
+    tets : (C, 4) ndarray of int
+        The corner tetrahedra (global numbering; ``n_nodes + k`` is virtual node ``k``).
+    inv_rest : (C, 3, 3) ndarray
+        Inverse of each corner's rest edge matrix (``J = E @ G``).
+    weight : (C,) ndarray
+        Each corner's weight.
+    virtual : (V, N) sparse matrix
+        The virtual nodes as combinations of the real ones.
+    quads : (Q, 4) ndarray of int
+        Shells whose corner determinants get a barrier (global numbering).
+    rest : (N, 3) ndarray
+        Rest coordinates (the quads' reference determinants).
+    free : (F,) ndarray of int
+        The free nodes (global numbering).
+    volume_weight, shell_weight : float
+        ``theta`` and the shells' barrier weight (:class:`RelaxOptions`).
+    """
+
+    def __init__(
+        self,
+        tets: NDArray[np.int64],
+        inv_rest: NDArray[np.float64],
+        weight: NDArray[np.float64],
+        virtual: sp.csr_matrix,
+        quads: NDArray[np.int64],
+        rest: NDArray[np.float64],
+        free: NDArray[np.int64],
+        volume_weight: float,
+        shell_weight: float,
+    ):
+        n = virtual.shape[1]
+        is_virtual = tets >= n
+        used_virtual = np.unique(tets[is_virtual]) - n
+        v_sub = virtual[used_virtual]
+        self.nodes = np.union1d(np.union1d(np.unique(tets[~is_virtual]), v_sub.indices), quads)
+        m = len(self.nodes)
+        self.quads = np.searchsorted(self.nodes, quads).reshape(-1, 4)
+        self.quad_rest = corner_determinants(rest[quads.reshape(-1, 4)], "quad4")
+        self.quad_weight = shell_weight
+        q_flat = self.quads.ravel()
+        self.quad_scatter = sp.csr_matrix(
+            (np.ones(len(q_flat)), (q_flat, np.arange(len(q_flat)))), shape=(m, len(q_flat))
+        )
+        self.virtual = v_sub[:, self.nodes].tocsr() if len(used_virtual) else None
+        self.virtual_t = None if self.virtual is None else self.virtual.T.tocsr()
+        local = np.empty_like(tets)
+        local[~is_virtual] = np.searchsorted(self.nodes, tets[~is_virtual])
+        local[is_virtual] = m + np.searchsorted(used_virtual, tets[is_virtual] - n)
+        self.tets = local
+        self.m = m
+        g = inv_rest  # J = E @ G
+        self.g_rows = np.ascontiguousarray(g)  # (C, 3, 3) for the compiled kernel
+        self.g = np.ascontiguousarray(np.transpose(g, (1, 2, 0)))  # (3 edges, 3, C)
+        self.weight = weight
+        self.theta = volume_weight
+        self.free = np.searchsorted(self.nodes, free)  # local indices of the free nodes
+        # gradient scatter: d_edges (3 edges x C, 3) -> nodes, as one sparse product
+        c, size = len(self.tets), m + len(used_virtual)
+        cols = np.arange(3 * c)
+        ends = self.tets[:, 1:].T.ravel()  # column j * C + corner
+        plus = sp.csr_matrix((np.ones(3 * c), (ends, cols)), shape=(size, 3 * c))
+        base = np.tile(self.tets[:, 0], 3)
+        minus = sp.csr_matrix((np.ones(3 * c), (base, cols)), shape=(size, 3 * c))
+        self.scatter = (plus - minus).tocsr()
+        # diagonal of the shape term's Hessian at rest, per node: a preconditioner
+        end_sq = np.einsum("jkc,jkc->jc", self.g, self.g)
+        base_sq = np.sum(self.g.sum(axis=0) ** 2, axis=0)
+        diag = np.zeros(size)
+        np.add.at(diag, ends, np.tile(self.weight, 3) * end_sq.ravel())
+        np.add.at(diag, self.tets[:, 0], self.weight * base_sq)
+        if self.virtual_t is not None:
+            diag = diag[:m] + self.virtual_t.multiply(self.virtual_t) @ diag[m:]
+        self.diagonal = diag[:m]
+
+    def augment(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Local real coordinates (m, 3) followed by the virtual nodes' coordinates."""
+        return x if self.virtual is None else np.vstack([x, self.virtual @ x])
+
+    def energy(self, x: NDArray[np.float64], eps: float) -> tuple[float, NDArray, NDArray]:
+        """Energy, gradient (m, 3) and per-corner det J at local coordinates ``x`` (m, 3)."""
+        xa = np.ascontiguousarray(self.augment(x))
+        grad = np.empty_like(xa)
+        det = np.empty(len(self.tets))
+        energy = foldover_free_energy(
+            xa, self.tets, self.g_rows, self.weight, self.theta, eps, grad, det
+        )
+        if self.virtual_t is not None:
+            grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
+        return self._add_shells(x, eps, float(energy), grad, det)
+
+    def _add_shells(self, x, eps, energy, grad, det):
+        if len(self.quads) == 0:
+            return energy, grad, det
+        e_q, g_q, r_q = quad_barrier(x, self.quads, self.quad_rest, self.quad_weight, eps)
+        grad = grad + self.quad_scatter @ g_q.reshape(-1, 3)
+        return energy + e_q, grad, np.concatenate([det, r_q])
+
+    def energy_numpy(self, x: NDArray[np.float64], eps: float) -> tuple[float, NDArray, NDArray]:
+        """:meth:`energy` in NumPy (the reference the compiled kernel is tested against).
+
+        Laid out as (component, corner) arrays so that every step is an elementwise operation
+        on long vectors.
+        """
+        theta, g, t = self.theta, self.g, self.tets
+        xt = self.augment(x).T
+        base = xt[:, t[:, 0]]
+        edges = np.stack([xt[:, t[:, k]] - base for k in (1, 2, 3)])  # (3 edges, 3 coords, C)
+        jac = sum(edges[j][:, None, :] * g[j][None, :, :] for j in range(3))  # (3, 3, C)
+        c0, c1, c2 = jac[:, 0], jac[:, 1], jac[:, 2]
+        cof = np.stack([_cross_t(c1, c2), _cross_t(c2, c0), _cross_t(c0, c1)], axis=1)
+        det = np.sum(c0 * cof[:, 0], axis=0)
+        chi, dchi = regularised_det(det, eps)
+        frob = np.sum(jac * jac, axis=(0, 1))
+        chi23 = chi ** (2.0 / 3.0)
+        shape = frob / chi23
+        volume = (det * det + 1.0) / chi
+        w = self.weight
+        energy = float(np.einsum("i,i->", w, (1.0 - theta) * shape + theta * volume))
+        d_cof = w * (
+            (1.0 - theta) * (-2.0 / 3.0) * shape * dchi / chi
+            + theta * (2.0 * det / chi - volume * dchi / chi)
+        )
+        d_jac = (w * (1.0 - theta) * 2.0 / chi23) * jac + d_cof * cof
+        # dE[j, i] = sum_k dJ[i, k] G[j, k]
+        d_edges = np.einsum("ikc,jkc->jci", d_jac, g).reshape(-1, 3)
+        grad = self.scatter @ d_edges
+        if self.virtual_t is not None:
+            grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
+        return self._add_shells(x, eps, energy, grad, det)
+
+
+def _cross_t(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cross products of (3, C) column-vector arrays."""
+    return np.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def penalised_objective(
+    energy: FoldoverEnergy,
+    start: NDArray[np.float64],
+    scale: NDArray[np.float64],
+    eps: float,
+    planes: tuple[NDArray, NDArray, NDArray, NDArray],
+    force_depth: float,
+    sliding: tuple[NDArray[np.int64], NDArray[np.float64]],
+) -> Callable[[NDArray[np.float64]], tuple[float, NDArray]]:
+    """The energy over the scaled free variables, with half-space penalties.
+
+    Parameters
+    ----------
+    energy : FoldoverEnergy
+    start : (m, 3) ndarray
+        Local coordinates; the free rows are replaced by the variables.
+    scale : (F, 1) ndarray
+        Variable scaling of the free nodes (Jacobi preconditioning).
+    eps : float
+        The barrier's regularisation.
+    planes : (local nodes, normals, offsets, stiffness)
+        Penalties ``k/2 gap^2`` on ``gap = n . x - offset < 0``, quadratic up to
+        ``force_depth`` deep and linear beyond (Huber): a node pinched between two planes is
+        pushed with a bounded force, so the barrier, not the penalty, has the last word.
+    sliding : (rows of the free nodes, unit normals)
+        Free nodes moving only in their tangent planes (the gradient's normal part is removed,
+        so L-BFGS stays in those planes).
+    """
+    work = start.copy()
+    c_local, c_normals, c_offsets, c_k = planes
+    slide_rows, slide_normals = sliding
+    sub_free = energy.free
+
+    def fun(flat: NDArray[np.float64]) -> tuple[float, NDArray]:
+        work[sub_free] = flat.reshape(-1, 3) * scale
+        value, grad, _ = energy.energy(work, eps)
+        if len(c_local):
+            gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
+            short = np.minimum(gap, 0.0)
+            clipped = np.maximum(short, -force_depth)
+            value += float(
+                np.sum(c_k * (0.5 * clipped * clipped + force_depth * (clipped - short)))
+            )
+            np.add.at(grad, c_local, (c_k * clipped)[:, None] * c_normals)
+        g_free = grad[sub_free]
+        if len(slide_rows):
+            along = np.einsum("ij,ij->i", g_free[slide_rows], slide_normals)
+            g_free[slide_rows] -= along[:, None] * slide_normals
+        return value, (g_free * scale).ravel()
+
+    return fun
+
+
+def next_eps(eps: float, before: float, after: float, d_min: float, sigma_floor: float) -> float:
+    """Garanzha et al. 2021: shrink ``eps`` as fast as the energy's decrease in the last round
+    (``before`` -> ``after``) allows, given the smallest corner ``det J`` ``d_min``; the
+    relative decrease per round is at least ``sigma_floor``."""
+    sigma = max(1.0 - after / before, sigma_floor) if before > 0 else 1.0
+    chi_min = 0.5 * (d_min + np.sqrt(eps * eps + d_min * d_min))
+    mu = (1.0 - sigma) * chi_min
+    return max(float(2.0 * np.sqrt(mu * (mu - d_min))) if d_min < mu else 0.0, 1e-9)
