@@ -244,6 +244,10 @@ class QualityOptions:
         the wrong side of its constraint, re-evaluated at the end of each round.
     tolerance : float
         Stop when a round lowers the objective by less than this fraction.
+    settling_rounds : int
+        After the rounds, at most this many more against freshly evaluated constraints, the
+        stiffness four times higher each time, while a node is farther than
+        ``constraint_tolerance`` on the wrong side of its constraint.
     """
 
     margin: float = 0.03
@@ -255,6 +259,7 @@ class QualityOptions:
     constraint_stiffness: float = 10.0
     constraint_tolerance: float = 0.05
     tolerance: float = 0.02
+    settling_rounds: int = 6
 
 
 @dataclass(frozen=True)
@@ -684,6 +689,28 @@ def optimise_quality(
         report_progress((rnd + 1) / opt.rounds, "optimising element quality")
         converged = result.fun <= 1e-12 or previous - result.fun <= opt.tolerance * result.fun
         previous = float(result.fun)
+    if constraints is not None:
+        # The planes of the last round were set before that round moved the nodes (some by
+        # several millimetres): a node can end past a bone surface its planes did not describe.
+        # Settle against fresh planes, stiffer each time, until every node is within the
+        # tolerance, so the result never hinges on where the round count ran out.
+        for _ in range(opt.settling_rounds):
+            x_all[pr.nodes] = x
+            nodes, normals, offsets = constraints(x_all)
+            rows = row_of[np.asarray(nodes, dtype=np.int64)]
+            keep = rows >= 0
+            objective.set_constraints(
+                rows[keep], np.asarray(normals)[keep], np.asarray(offsets)[keep]
+            )
+            v0 = (x[pr.free] / h).ravel()
+            if objective.deepest_violation(v0) <= opt.constraint_tolerance:
+                break
+            objective.stiffness *= 4.0
+            result = minimize_lbfgs(objective, v0, opt.iterations_per_round)
+            x[pr.free] = result.x.reshape(-1, 3) * h
+            rounds += 1
+            iterations += int(result.nit)
+            evaluations += int(result.nfev)
     j_after = _element_jacobians(pr, x)
     x_all[pr.nodes] = x
     return x_all, QualityOptimisationReport(
