@@ -87,8 +87,8 @@ class Posture:
     options : PostureOptions
     folder : Path
         Absolute output folder: ``OUT/<deck_name>/<tables_tag>/flex_<angle>``.
-    line : int
-        Plan line of the deck entry (for messages).
+    plan_key : tuple
+        Where the posture's angle is in the plan (``("deck", 0, "flexion", 2)``), for messages.
     """
 
     deck_name: str
@@ -99,7 +99,7 @@ class Posture:
     flexion: float
     options: PostureOptions
     folder: Path
-    line: int = 0
+    plan_key: tuple[str | int, ...] = ()
 
     @property
     def id(self) -> str:
@@ -342,8 +342,11 @@ def load_plan(path: str | Path) -> Plan:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         msg = str(exc)
-        m = re.search(r"\s*\(at line (\d+), column \d+\)$", msg)
-        line = int(m.group(1)) if m else None
+        m = re.search(r"\s*\(at (?:line (\d+), column \d+|end of document)\)$", msg)
+        if m and m.group(1):
+            line = int(m.group(1))
+        else:  # "at end of document": the last line
+            line = len(text.rstrip().splitlines()) if m else None
         raise PlanError(f"TOML syntax: {msg[: m.start()] if m else msg}", path, line) from None
     chk = _Checker(path, key_lines(text))
     base = path.resolve().parent
@@ -381,7 +384,7 @@ def load_plan(path: str | Path) -> Plan:
     for i, entry in enumerate(decks):
         for p in _deck_postures(chk, entry, ("deck", i), base, out, default_options):
             for target in (p.deck_out, p.report_out):
-                where = ("deck", i, "flexion")
+                where = p.plan_key
                 if target in by_file:
                     first, first_id = by_file[target]
                     raise chk.error(
@@ -463,7 +466,7 @@ def _deck_postures(
     postures = []
     for j, choice in enumerate(choices):
         tag, overrides = _kinematics(chk, choice, (*key, "kinematics", j), base)
-        for deg in angles:
+        for deg, where in angles:
             postures.append(
                 Posture(
                     deck_name=name,
@@ -474,7 +477,7 @@ def _deck_postures(
                     flexion=deg,
                     options=options,
                     folder=out / name / tag / f"flex_{angle_tag(deg)}",
-                    line=chk.line_of(key) or 0,
+                    plan_key=where,
                 )
             )
     return postures
@@ -487,11 +490,11 @@ def angle_tag(deg: float) -> str:
     return _angle_tag(deg)
 
 
-def _angles(chk: _Checker, value: Any, key: Key) -> list[float]:
+def _angles(chk: _Checker, value: Any, key: Key) -> list[tuple[float, Key]]:
     items = value if isinstance(value, list) else [value]
     if not items:
         raise chk.error("no angle given", key)
-    out: list[float] = []
+    out: list[tuple[float, Key]] = []
     lo, hi = FLEXION_RANGE
     for k, item in enumerate(items):
         here = (*key, k) if isinstance(value, list) else key
@@ -524,7 +527,7 @@ def _angles(chk: _Checker, value: Any, key: Key) -> list[float]:
                 raise chk.error(
                     f"flexion {d:g} deg is outside the supported range {lo:g} to {hi:g} deg", here
                 )
-        out += degs
+        out += [(d, here) for d in degs]
     return out
 
 

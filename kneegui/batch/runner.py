@@ -238,11 +238,13 @@ class _Slot:
         self.last_key = None
 
 
-def _take(pending: list[PostureTask], key: str | None) -> PostureTask:
-    """The next posture for a slot: the first of the deck it last posed, else the first."""
-    for i, task in enumerate(pending):
-        if task.precompute_key == key:
-            return pending.pop(i)
+def _take(pending: list[PostureTask], key: str | None, busy: set[str]) -> PostureTask:
+    """The next posture for a slot: the next of the deck it last posed, else the first of a deck
+    no other slot is posing, else the first (so each worker precomputes as few decks as it can)."""
+    for wanted in (lambda t: t.precompute_key == key, lambda t: t.precompute_key not in busy):
+        for i, task in enumerate(pending):
+            if wanted(task):
+                return pending.pop(i)
     return pending.pop(0)
 
 
@@ -259,9 +261,10 @@ def _run_local(
         while pending or any(s.future for s in slots):
             for slot in slots:
                 if slot.future is None and pending:
-                    slot.submit(_take(pending, slot.last_key))
-            busy = [s.future for s in slots if s.future is not None]
-            done, _ = wait(busy, return_when=FIRST_COMPLETED)
+                    busy = {s.task.precompute_key for s in slots if s.task is not None}
+                    slot.submit(_take(pending, slot.last_key, busy))
+            running = [s.future for s in slots if s.future is not None]
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
             for slot in slots:
                 if slot.future is None or slot.future not in done:
                     continue
@@ -282,8 +285,10 @@ def _run_local(
                 slot.future = slot.task = None
                 on_result(result)
     finally:
+        # all idle after a normal end; after an interrupt do not wait for running postures
+        finished = not pending and all(s.future is None for s in slots)
         for slot in slots:
-            slot.executor.shutdown(wait=False, cancel_futures=True)
+            slot.executor.shutdown(wait=finished, cancel_futures=True)
 
 
 def _run_dask(
