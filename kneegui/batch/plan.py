@@ -116,17 +116,6 @@ class Posture:
         """The posture's JSON report."""
         return self.folder / "report.json"
 
-    @property
-    def setup_key(self) -> tuple[Any, ...]:
-        """What the precompute depends on: postures sharing it share one Repositioner."""
-        return (
-            str(self.deck),
-            str(self.setup),
-            self.kinematics,
-            self.options.relax,
-            self.options.method,
-        )
-
 
 @dataclass(frozen=True)
 class Plan:

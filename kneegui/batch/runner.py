@@ -23,6 +23,7 @@ import json
 import multiprocessing
 import os
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -305,11 +306,10 @@ def _run_dask(
     except (OSError, TimeoutError, ValueError) as exc:
         raise BatchError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
     started = time.perf_counter()
+    run_id = uuid.uuid4().hex[:12]  # keys unique to this run: no result of another is reused
     with client:
         futures = {
-            client.submit(
-                run_posture, task, pure=False, key=f"kneegui-posture-{i}-{task.inputs}"
-            ): task
+            client.submit(run_posture, task, pure=False, key=f"kneegui-{run_id}-{i}"): task
             for i, task in enumerate(tasks)
         }
         for future in as_completed(futures):

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import TextIO
 
-from kneegui.batch import BatchProgress, load_plan, run_plan
+from kneegui.batch import BatchError, BatchProgress, load_plan, run_plan
 
 NAME = "batch"
 HELP = (
@@ -72,8 +72,7 @@ class ProgressBar:
 
 def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
-        print("kneegui: --workers must be at least 1", file=sys.stderr)
-        return 2
+        raise BatchError(f"--workers must be at least 1, got {args.workers}")
     plan = load_plan(args.plan)
     bar = ProgressBar(sys.stderr)
     try:
