@@ -292,35 +292,38 @@ def _run_local(
             slot.executor.shutdown(wait=finished, cancel_futures=True)
 
 
-def _run_dask(
-    tasks: list[PostureTask], scheduler: str, on_result: Callable[[PostureResult], None]
-) -> None:
+def _connect(scheduler: str) -> Any:
+    """A ``distributed.Client`` on the running scheduler (before anything is written)."""
     try:
-        from distributed import Client, as_completed
+        from distributed import Client
     except ImportError:
         raise BatchError(
             "--scheduler needs Dask: pip install 'kneegui[batch]' (dask[distributed])"
         ) from None
     try:
-        client = Client(scheduler, timeout="20s")
+        return Client(scheduler, timeout="20s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise BatchError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+
+
+def _run_dask(
+    client: Any, tasks: list[PostureTask], on_result: Callable[[PostureResult], None]
+) -> None:
+    from distributed import as_completed
+
     started = time.perf_counter()
     run_id = uuid.uuid4().hex[:12]  # keys unique to this run: no result of another is reused
-    with client:
-        futures = {
-            client.submit(run_posture, task, pure=False, key=f"kneegui-{run_id}-{i}"): task
-            for i, task in enumerate(tasks)
-        }
-        for future in as_completed(futures):
-            task = futures[future]
-            try:
-                result = future.result()
-            except Exception as exc:  # KilledWorker: its workers died posing it
-                result = _failed(
-                    task, f"{type(exc).__name__}: {exc}", time.perf_counter() - started
-                )
-            on_result(result)
+    futures = {
+        client.submit(run_posture, task, pure=False, key=f"kneegui-{run_id}-{i}"): task
+        for i, task in enumerate(tasks)
+    }
+    for future in as_completed(futures):
+        task = futures[future]
+        try:
+            result = future.result()
+        except Exception as exc:  # KilledWorker: its workers died posing it
+            result = _failed(task, f"{type(exc).__name__}: {exc}", time.perf_counter() - started)
+        on_result(result)
 
 
 # ---------------------------------------------------------------------------- driver
@@ -366,6 +369,22 @@ def run_plan(
             f"{plan.out} already holds a batch run ({MANIFEST_NAME}); use --resume to complete "
             "it, or choose another output folder"
         )
+    client = _connect(scheduler) if scheduler else None
+    try:
+        return _run(plan, client, workers, resume, progress, t0)
+    finally:
+        if client is not None:
+            client.close()
+
+
+def _run(
+    plan: Plan,
+    client: Any,
+    workers: int | None,
+    resume: bool,
+    progress: ProgressCallback | None,
+    t0: float,
+) -> BatchOutcome:
     tasks = make_tasks(plan)
     entries = {t.posture.id: _entry(t, plan.out) for t in tasks}
     state = BatchProgress(total=len(tasks))
@@ -416,8 +435,8 @@ def run_plan(
             progress(state)
 
     if todo:
-        if scheduler:
-            _run_dask(todo, scheduler, on_result)
+        if client is not None:
+            _run_dask(client, todo, on_result)
         else:
             _run_local(todo, workers or os.cpu_count() or 1, on_result)
     rows = list(entries.values())
