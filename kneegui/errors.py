@@ -73,3 +73,28 @@ class QualityGateError(KneeguiError):
 
 class Cancelled(KneeguiError):
     """A long operation was cancelled through its callback."""
+
+
+class PlanError(KneeguiError):
+    """A batch plan (``kneegui batch PLAN``) is invalid.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, in one line (naming the key when there is one).
+    path : str or Path, optional
+        The plan file.
+    line : int, optional
+        1-based line number in ``path``.
+    """
+
+    def __init__(self, message: str, path: str | Path | None = None, line: int | None = None):
+        self.message = message
+        self.path = None if path is None else Path(path)
+        self.line = line
+        if self.path is None:
+            super().__init__(message)
+        elif line is None:
+            super().__init__(f"{self.path}: {message}")
+        else:
+            super().__init__(f"{self.path}:{line}: {message}")

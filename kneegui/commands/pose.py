@@ -12,7 +12,7 @@ from kneegui.errors import SetupError
 from kneegui.io.atomic import atomic_write_text
 from kneegui.io.lsdyna import read_deck, write_deck
 from kneegui.reposition import METHODS, Repositioner, RepositionOptions
-from kneegui.reposition.pipeline import pose_model
+from kneegui.reposition.pipeline import PosedModel, pose_model
 from kneegui.setup import load_setup
 
 NAME = "pose"
@@ -51,6 +51,37 @@ def _angle_tag(deg: float) -> str:
     return f"{deg:g}".replace("-", "m").replace(".", "p")
 
 
+def export_pose(
+    repositioner: Repositioner,
+    deg: float,
+    out: Path,
+    *,
+    model_path: str | Path,
+    smooth: bool,
+    force: bool,
+    flatten: bool,
+    context_timings: dict[str, float],
+) -> PosedModel:
+    """Pose, report and write one angle as ``kneegui pose`` does (also used by ``kneegui batch``).
+
+    The deck is written to ``out`` (with its includes beside it) when the pose passes the quality
+    gate or ``force`` is set; the report gets ``context_timings`` (read, setup, precompute),
+    the model's absolute path and ``written`` (the files written, as strings). The report file
+    is the caller's to write.
+    """
+    posed = pose_model(repositioner, deg, smooth=smooth)
+    report = posed.report
+    report["timings_s"].update(context_timings)
+    report["model"] = str(Path(model_path).resolve())
+    written = []
+    if posed.passes_gate or force:
+        t = time.perf_counter()
+        written = write_deck(posed.model, out, flatten=flatten)
+        report["timings_s"]["write"] = time.perf_counter() - t
+    report["written"] = [str(p) for p in written]
+    return posed
+
+
 def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     model = read_deck(args.model)
@@ -86,25 +117,26 @@ def run(args: argparse.Namespace) -> int:
                 )
             report_path = Path(args.report) if args.report else None
         jobs.append((deg, out, report_path))
+    context_timings = {
+        "read": t_read,
+        "setup": t_setup,
+        "precompute": t_pre,
+        **{f"precompute_{k}": v for k, v in repositioner.timings_s.items()},
+    }
     status = 0
     for deg, out, report_path in jobs:
-        posed = pose_model(repositioner, deg, smooth=not args.no_smooth)
-        report = posed.report
-        report["timings_s"].update(
-            {
-                "read": t_read,
-                "setup": t_setup,
-                "precompute": t_pre,
-                **{f"precompute_{k}": v for k, v in repositioner.timings_s.items()},
-            }
+        posed = export_pose(
+            repositioner,
+            deg,
+            out,
+            model_path=args.model,
+            smooth=not args.no_smooth,
+            force=args.force,
+            flatten=args.flatten,
+            context_timings=context_timings,
         )
-        report["model"] = str(Path(args.model).resolve())
-        written = []
-        if posed.passes_gate or args.force:
-            t = time.perf_counter()
-            written = write_deck(posed.model, out, flatten=args.flatten)
-            report["timings_s"]["write"] = time.perf_counter() - t
-        report["written"] = [str(p) for p in written]
+        report = posed.report
+        written = report["written"]
         if report_path is not None:
             atomic_write_text(report_path, json.dumps(report, indent=2) + "\n")
         q = report["quality"]
