@@ -19,8 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from kneegui.errors import PlanError, SetupError
-from kneegui.kinematics.tables import QUANTITIES, resolve_table
+from kneegui.reposition.pipeline import angle_tag
 from kneegui.reposition.repositioner import FLEXION_RANGE, METHODS
+from kneegui.setup.kinematic_tables import QUANTITIES, resolve_table
 
 #: Posture options a plan may set in ``[defaults]`` or per deck, with their type and default.
 OPTION_DEFAULTS: dict[str, Any] = {
@@ -470,13 +471,6 @@ def _deck_postures(
                 )
             )
     return postures
-
-
-def angle_tag(deg: float) -> str:
-    """The angle in a folder name, as ``kneegui pose`` writes it (``37.5`` -> ``37p5``)."""
-    from kneegui.commands.pose import _angle_tag
-
-    return _angle_tag(deg)
 
 
 def _angles(chk: _Checker, value: Any, key: Key) -> list[tuple[float, Key]]:

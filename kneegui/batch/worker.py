@@ -22,6 +22,7 @@ from typing import Any
 
 from kneegui.batch.plan import Posture
 from kneegui.errors import KneeguiError
+from kneegui.reposition.pipeline import export_pose
 
 #: Environment every worker process is started with: one thread per math library, so that a
 #: posture's bytes never depend on the machine's core count or on the scheduler used (Dask's
@@ -142,8 +143,6 @@ def _export_posture(repositioner: Any, posture: Posture, context_timings: dict[s
     Returns the :class:`~kneegui.reposition.pipeline.PosedModel` whose report lists the files
     written (none when the gate fails without ``force``).
     """
-    from kneegui.commands.pose import export_pose
-
     return export_pose(
         repositioner,
         posture.flexion,

@@ -10,9 +10,9 @@ from pathlib import Path
 
 from kneegui.errors import SetupError
 from kneegui.io.atomic import atomic_write_text
-from kneegui.io.lsdyna import read_deck, write_deck
+from kneegui.io.lsdyna import read_deck
 from kneegui.reposition import METHODS, Repositioner, RepositionOptions
-from kneegui.reposition.pipeline import PosedModel, pose_model
+from kneegui.reposition.pipeline import angle_tag, export_pose
 from kneegui.setup import load_setup
 
 NAME = "pose"
@@ -47,41 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS, help="soft-tissue method (default: best)")
 
 
-def _angle_tag(deg: float) -> str:
-    return f"{deg:g}".replace("-", "m").replace(".", "p")
-
-
-def export_pose(
-    repositioner: Repositioner,
-    deg: float,
-    out: Path,
-    *,
-    model_path: str | Path,
-    smooth: bool,
-    force: bool,
-    flatten: bool,
-    context_timings: dict[str, float],
-) -> PosedModel:
-    """Pose, report and write one angle as ``kneegui pose`` does (also used by ``kneegui batch``).
-
-    The deck is written to ``out`` (with its includes beside it) when the pose passes the quality
-    gate or ``force`` is set; the report gets ``context_timings`` (read, setup, precompute),
-    the model's absolute path and ``written`` (the files written, as strings). The report file
-    is the caller's to write.
-    """
-    posed = pose_model(repositioner, deg, smooth=smooth)
-    report = posed.report
-    report["timings_s"].update(context_timings)
-    report["model"] = str(Path(model_path).resolve())
-    written = []
-    if posed.passes_gate or force:
-        t = time.perf_counter()
-        written = write_deck(posed.model, out, flatten=flatten)
-        report["timings_s"]["write"] = time.perf_counter() - t
-    report["written"] = [str(p) for p in written]
-    return posed
-
-
 def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     model = read_deck(args.model)
@@ -100,11 +65,11 @@ def run(args: argparse.Namespace) -> int:
     jobs = []
     for deg in args.flexion:
         if several:
-            folder = Path(args.out) / f"flex_{_angle_tag(deg)}"
+            folder = Path(args.out) / f"flex_{angle_tag(deg)}"
             out = folder / deck_name
             report_path = (
                 Path(args.report).with_name(
-                    f"{Path(args.report).stem}_{_angle_tag(deg)}{Path(args.report).suffix}"
+                    f"{Path(args.report).stem}_{angle_tag(deg)}{Path(args.report).suffix}"
                 )
                 if args.report
                 else folder / "report.json"

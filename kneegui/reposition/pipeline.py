@@ -10,11 +10,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from kneegui.geometry.axes import measure_flexion
+from kneegui.io.lsdyna import write_deck
 from kneegui.model import SOLID_TYPES, Model
 from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
 from kneegui.quality.metrics import QualityResult
@@ -204,3 +206,60 @@ def pose_model(
     }
     report_progress(1.0, "done")
     return PosedModel(final, jsonable(report), reasons)
+
+
+def angle_tag(deg: float) -> str:
+    """The angle as it appears in an output name (``37.5`` -> ``37p5``, ``-5`` -> ``m5``)."""
+    return f"{deg:g}".replace("-", "m").replace(".", "p")
+
+
+def export_pose(
+    repositioner: Repositioner,
+    flexion_deg: float,
+    out: str | Path,
+    *,
+    model_path: str | Path,
+    smooth: bool = True,
+    force: bool = False,
+    flatten: bool = False,
+    context_timings: dict[str, float] | None = None,
+) -> PosedModel:
+    """Pose one angle with :func:`pose_model` and write the posed deck: the export step that
+    ``kneegui pose``, ``kneegui batch`` and the GUI's export share.
+
+    Parameters
+    ----------
+    repositioner : Repositioner
+        Precomputed for the model and setup.
+    flexion_deg : float
+        Target flexion (degrees).
+    out : str or Path
+        The posed deck; its includes are written beside it.
+    model_path : str or Path
+        The deck the model was read from (recorded in the report).
+    smooth : bool
+        Run the smoother after the relaxation.
+    force : bool
+        Write the deck even when the pose fails the quality gate.
+    flatten : bool
+        Inline every ``*INCLUDE`` into one file.
+    context_timings : dict, optional
+        Timings of the caller's stages (read, setup, precompute) added to the report's.
+
+    Returns
+    -------
+    PosedModel
+        Its report has ``model`` (absolute path) and ``written`` (the files written, none when
+        the gate failed without ``force``). The report file is the caller's to write.
+    """
+    posed = pose_model(repositioner, flexion_deg, smooth=smooth)
+    report = posed.report
+    report["timings_s"].update(context_timings or {})
+    report["model"] = str(Path(model_path).resolve())
+    written = []
+    if posed.passes_gate or force:
+        t = time.perf_counter()
+        written = write_deck(posed.model, out, flatten=flatten)
+        report["timings_s"]["write"] = time.perf_counter() - t
+    report["written"] = [str(p) for p in written]
+    return posed
