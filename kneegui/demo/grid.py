@@ -26,7 +26,7 @@ from scipy.sparse.linalg import cg
 
 from kneegui.demo.design import DemoDesign, smoothstep
 from kneegui.demo.layout import Layout
-from kneegui.model import ELEMENT_EDGES
+from kneegui.topology import ELEMENT_EDGES
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]

@@ -7,7 +7,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.meshopt.topology import boundary_node_mask, node_part_count
+from kneegui.meshopt.nodes import boundary_node_mask, node_part_count
 from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult
 

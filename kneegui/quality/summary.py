@@ -20,9 +20,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.model import SOLID_TYPES, Model
+from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult
 from kneegui.quality.thresholds import THRESHOLD_METRICS, Thresholds, load_thresholds
+from kneegui.topology import SOLID_TYPES
 
 #: Row labels of the quality table.
 METRIC_LABELS: dict[str, str] = {

@@ -9,11 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from kneegui.model import SOLID_TYPES, Model
+from kneegui.model import Model
 from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
+from kneegui.topology import SOLID_TYPES
 
 ProgressCallback = Callable[[float, str], None]
 

@@ -45,7 +45,6 @@ from kneegui.reposition.relax import (
     ElasticRelaxation,
     RelaxOptions,
     RelaxReport,
-    corner_tetrahedra,
     shell_face_tetrahedra,
 )
 from kneegui.reposition.rigid_blend import (
@@ -63,6 +62,7 @@ from kneegui.reposition.skin_contours import (
 )
 from kneegui.setup.condyles import surface_node_indices
 from kneegui.setup.format import JointSetup
+from kneegui.topology import corner_tetrahedra
 
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.

@@ -7,8 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from kneegui.model import ElementBlock, split_degenerate_solids
+from kneegui.model import ElementBlock
 from kneegui.quality import QualityEvaluator, compute_quality
+from kneegui.topology import split_degenerate_solids
 
 UNIT_CUBE = np.array(
     [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)],
