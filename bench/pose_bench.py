@@ -217,7 +217,7 @@ def pose_metrics(
         "worst_warpage": _finite(s["warpage"]["worst"]),
         "worst_skew": _finite(s["skew"]["worst"]),
         "worse_than_initial_aspect": s["aspect"]["worse_than_initial"],
-        "max_volume_change_pct": _finite(s["volume_change"]["max_element_percent"]),
+        "max_volume_change_pct": _finite(s["volume_change"]["max_element_pct"]),
         "bone_rigidity_error": rigidity["max"],
         "bone_rigidity_by_bone": rigidity,
     }

@@ -10,7 +10,13 @@ from typing import Any
 import numpy as np
 
 from kneegui.model import Model
-from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
+from kneegui.quality import (
+    compute_quality,
+    jsonable,
+    quality_gate,
+    summarize_quality,
+    volume_change_pct,
+)
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
@@ -55,8 +61,7 @@ def _volume_change(
             continue
         v, v0 = result[etype].volume, initial[etype].volume
         block = model.blocks[etype]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pct = np.where(np.abs(v0) > 0, 100.0 * (v - v0) / np.abs(v0), 0.0)
+        pct = volume_change_pct(v, v0)
         if len(pct):
             k = int(np.argmax(np.abs(pct)))
             if abs(pct[k]) > abs(max_pct):
