@@ -46,7 +46,7 @@ from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_pena
 from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult, compute_quality
-from kneegui.quality.thresholds import Thresholds, load_thresholds
+from kneegui.quality.thresholds import Thresholds, default_thresholds
 from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, ELEMENT_FACES
 
 ProgressCallback = Callable[[float, str], None]
@@ -103,7 +103,7 @@ def quality_aims(
     thresholds : Thresholds, optional
         Default: ``resources/quality_thresholds.csv``; its default (``*``) warn levels are used.
     jacobian_cap : float, optional
-        Highest corner Jacobian asked of any element (default: the warn level, 0.6).
+        Highest corner Jacobian asked of any element (default: the warn level).
     rest_coords : (N, 3) ndarray, optional
         The initial coordinates, for the solids' reference volumes.
     volume_change : float, optional
@@ -115,7 +115,7 @@ def quality_aims(
     QualityAims
         Jacobian ``min(initial, cap)``; aspect, warpage and skew ``max(initial, warn)``.
     """
-    levels = (thresholds or load_thresholds()).for_role(None)
+    levels = (thresholds or default_thresholds()).for_role(None)
     cap = levels["jacobian"].warn if jacobian_cap is None else float(jacobian_cap)
     out: dict[str, dict[str, NDArray[np.float64]]] = {
         m: {} for m in ("jacobian", "aspect", "warpage", "skew")

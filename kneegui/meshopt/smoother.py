@@ -34,6 +34,7 @@ from kneegui.quality.kernels import (
     ratio_of_determinants,
     scaled_corner_determinants,
 )
+from kneegui.quality.thresholds import JACOBIAN_WARN
 from kneegui.topology import CORNER_NODES, ELEMENT_EDGES, SOLID_FACES, boundary_faces
 from kneegui.topology import CORNER_TRIPLES as TOPOLOGY_CORNER_TRIPLES
 
@@ -420,7 +421,7 @@ def smooth_mesh(
     max_sweeps: int = 40,
     relaxation: tuple[float, ...] = (1.0, 0.5, 0.25),
     optimize: bool = True,
-    target: float | Mapping[str, ArrayLike] = 0.6,
+    target: float | Mapping[str, ArrayLike] = JACOBIAN_WARN,
     optimizer: str = "batched",
     max_optimized_nodes: int = 20000,
     iterations: int = 10,
@@ -458,8 +459,8 @@ def smooth_mesh(
         Quality goal: both stages work on the nodes sharing an element whose corner Jacobian is
         below its goal (stage 1 also on their neighbours). A float applies to every element; a
         mapping gives one goal per element of a block (aligned with its rows; types not in the
-        mapping use 0.6), e.g. ``min(0.6, initial Jacobian)`` so that elements are brought back
-        to their initial quality rather than above it.
+        mapping use the warn level), e.g. ``min(warn, initial Jacobian)`` so that elements are
+        brought back to their initial quality rather than above it.
     optimizer : {"batched", "scipy"}
         Stage 2: ``"batched"`` runs one Nelder-Mead simplex per node for all the nodes of a
         colour at once (vectorised, :mod:`kneegui.meshopt.batched`); ``"scipy"`` calls
@@ -592,7 +593,7 @@ def smooth_mesh(
             axis=1,
         )
         scale = float(np.median(edge_len)) if len(edge_len) else 1.0
-    goal = np.full(len(jac), 0.6)
+    goal = np.full(len(jac), JACOBIAN_WARN)
     for ti, etype in enumerate(nb.types):
         span = slice(nb.offset[ti], nb.offset[ti + 1])
         if isinstance(target, Mapping):

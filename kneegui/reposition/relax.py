@@ -55,6 +55,7 @@ from kneegui.meshopt.quality_optimiser import (
 )
 from kneegui.meshopt.smoother import SmoothingReport, corner_determinants, smooth_mesh
 from kneegui.model import ElementBlock
+from kneegui.quality.thresholds import JACOBIAN_WARN
 from kneegui.reposition.contact import BoneSurfaceDistance
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
 from kneegui.topology import SOLID_FACES
@@ -530,7 +531,8 @@ class ElasticRelaxation:
         none.
     goals : mapping of str to (m,) ndarray, optional
         Per element of ``blocks``, the corner Jacobian the polish aims at
-        (:func:`kneegui.meshopt.smoothing_pipeline.smoothing_goals`; default 0.6 everywhere).
+        (:func:`kneegui.meshopt.smoothing_pipeline.smoothing_goals`; default the warn level
+        everywhere).
     aims : QualityAims, optional
         Per element of ``blocks``, the quality the optimisation aims at
         (:func:`kneegui.meshopt.quality_optimiser.quality_aims`); without them there is no
@@ -1060,7 +1062,7 @@ class ElasticRelaxation:
                     ok[hit] = margin >= np.minimum(start[slot[hit]], 0.0) - 1e-9
                 return ok
 
-        goals = self.goals if self.goals is not None else 0.6
+        goals = self.goals if self.goals is not None else JACOBIAN_WARN
         slide = self.options.slide_skin is not False
         sliding = self.sliding[np.isin(self.sliding, free)] if slide else None
         x, report.polish = smooth_mesh(
