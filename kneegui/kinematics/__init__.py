@@ -9,6 +9,8 @@ from kneegui.kinematics.posing import (
 )
 from kneegui.kinematics.tables import (
     QUANTITIES,
+    SUPPORTED_FLEXION_DEG,
+    VALIDATED_FLEXION_DEG,
     KinematicTable,
     read_table_csv,
     resolve_table,
@@ -18,6 +20,8 @@ from kneegui.kinematics.tables import (
 
 __all__ = [
     "QUANTITIES",
+    "SUPPORTED_FLEXION_DEG",
+    "VALIDATED_FLEXION_DEG",
     "BonePose",
     "KinematicTable",
     "apply_bone_transforms",

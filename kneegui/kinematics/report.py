@@ -14,7 +14,9 @@ from typing import Any
 
 import numpy as np
 
-TARGETS = (-5.0, 0.0, 30.0, 60.0, 90.0, 120.0, 140.0)
+from kneegui.kinematics.tables import VALIDATED_FLEXION_DEG
+
+TARGETS = (VALIDATED_FLEXION_DEG[0], 0.0, 30.0, 60.0, 90.0, 120.0, VALIDATED_FLEXION_DEG[1])
 
 
 def _max_relative_distance_change(a: np.ndarray, b: np.ndarray, sample: int = 400) -> float:

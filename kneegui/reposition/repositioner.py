@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
+from kneegui.kinematics.tables import SUPPORTED_FLEXION_DEG
 from kneegui.meshopt.quality_optimiser import quality_aims
 from kneegui.meshopt.smoothing_pipeline import smoothing_goals
 from kneegui.model import Model
@@ -70,8 +71,6 @@ BAND_ROLES = ("ligament", "meniscus", "tendon")
 METHODS = ("paper", "blend", "hybrid")
 SEGMENTS = ("femur", "tibia", "patella", "fixed")
 
-#: Supported target flexion range (degrees).
-FLEXION_RANGE = (-10.0, 150.0)
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -581,7 +580,7 @@ class Repositioner:
     def bone_pose(self, flexion_deg: float) -> BonePose:
         """Rigid bone transforms for ``flexion_deg`` (see :func:`solve_bone_pose`), the patella
         seated on the femur (``options.patella_tracking``)."""
-        lo, hi = FLEXION_RANGE
+        lo, hi = SUPPORTED_FLEXION_DEG
         if not np.isfinite(flexion_deg) or not lo <= flexion_deg <= hi:
             raise SetupError(
                 f"target flexion {flexion_deg!r} deg is outside the supported "
