@@ -19,6 +19,14 @@ elements) and returns a dict of ``(m,)`` arrays:
 
 The kernels compare cosines / squared lengths across faces and take a single ``arccos`` /
 ``arcsin`` / ``sqrt`` of the worst one per element; that is what makes a million hexes cheap.
+
+This module is also the one implementation of the corner determinants (from
+:data:`kneegui.topology.CORNER_TRIPLES`): :func:`corner_vectors`,
+:func:`corner_determinants_cm` (component-major, as the kernels use it),
+:func:`corner_determinants` / :func:`corner_jacobian` (node-major ``(..., k, 3)`` arrays) and
+:func:`scaled_corner_determinants`. The smoother, the quality optimiser, the relaxation and the
+demo's repair call them; the compiled penalty in :mod:`kneegui.meshopt.quality_kernel` has its
+NumPy reference in :mod:`kneegui.meshopt.quality_optimiser`, tested against it.
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.topology import CORNER_TRIPLES, hex_faces_parametric
+from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, hex_faces_parametric
 
 Vec = NDArray[np.float64]  # (3, m) vectors, component-major
 Arr = NDArray[np.float64]  # (m,)
@@ -224,6 +232,15 @@ class _FaceAccumulator:
         }
 
 
+def _result(acc: _FaceAccumulator, corner: Arr, gauss: Arr, volume: Arr) -> dict[str, Arr]:
+    """A kernel's output: the face metrics with the two Jacobians and the volume."""
+    out = acc.finish()
+    out["jacobian_corner"] = corner
+    out["jacobian_gauss"] = gauss
+    out["volume"] = volume
+    return out
+
+
 # ---------------------------------------------------------------------- solids
 #: Hex faces as parametric node cycles (:func:`kneegui.topology.hex_faces_parametric`): the
 #: face metrics are unsigned, and these cycles fix their rounding.
@@ -275,11 +292,7 @@ def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     for face in HEX_FACES:
         edges = [sq[frozenset((face[i], face[(i + 1) % 4]))] for i in range(4)]
         acc.add_quad([p[i] for i in face], edges)
-    out = acc.finish()
-    out["jacobian_corner"] = ratio_of_determinants(corner)
-    out["jacobian_gauss"] = ratio_of_determinants(gauss)
-    out["volume"] = volume
-    return out
+    return _result(acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), volume)
 
 
 #: 3-point triangle rule (r, s), weight 1/6 each.
@@ -312,11 +325,7 @@ def wedge6_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_quad([p[0], p[1], p[4], p[3]], (sq01, sq14, sq34, sq03))
     acc.add_quad([p[1], p[2], p[5], p[4]], (sq12, sq25, sq45, sq14))
     acc.add_quad([p[2], p[0], p[3], p[5]], (sq20, sq03, sq53, sq25))
-    out = acc.finish()
-    out["jacobian_corner"] = ratio_of_determinants(corner)
-    out["jacobian_gauss"] = ratio_of_determinants(gauss)
-    out["volume"] = volume
-    return out
+    return _result(acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), volume)
 
 
 def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -339,11 +348,7 @@ def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_quad(list(base), sq_base)
     for i in range(4):
         acc.add_tri((sq_base[i], sq_side[(i + 1) % 4], sq_side[i]))
-    out = acc.finish()
-    out["jacobian_corner"] = jac
-    out["jacobian_gauss"] = jac.copy()
-    out["volume"] = volume
-    return out
+    return _result(acc, jac, jac.copy(), volume)
 
 
 def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -362,11 +367,7 @@ def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_tri((s01, s13, s03))
     acc.add_tri((s12, s23, s13))
     acc.add_tri((s02, s23, s03))
-    out = acc.finish()
-    out["jacobian_corner"] = jac
-    out["jacobian_gauss"] = jac.copy()
-    out["volume"] = volume
-    return out
+    return _result(acc, jac, jac.copy(), volume)
 
 
 # ---------------------------------------------------------------------- shells
@@ -391,11 +392,9 @@ def quad4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
             gauss.append(_dot(_cross(x_xi, x_eta), n))
     acc = _FaceAccumulator(m)
     acc.add_quad(list(p), [_sq(ei) for ei in e])
-    out = acc.finish()
-    out["jacobian_corner"] = ratio_of_determinants(corner)
-    out["jacobian_gauss"] = ratio_of_determinants(gauss)
-    out["volume"] = 0.5 * np.sqrt(_sq(n))
-    return out
+    return _result(
+        acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), 0.5 * np.sqrt(_sq(n))
+    )
 
 
 def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -406,20 +405,20 @@ def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     jac = np.where(area > 0.0, 1.0, -1.0)
     acc = _FaceAccumulator(m)
     acc.add_tri((_sq(e01), _sq(p[2] - p[1]), _sq(e02)))
-    out = acc.finish()
-    out["jacobian_corner"] = jac
-    out["jacobian_gauss"] = jac.copy()
-    out["volume"] = area
-    return out
+    return _result(acc, jac, jac.copy(), area)
 
 
-#: Kernel and the node columns it reads, per element type. tet10 is measured on its corners.
+#: Kernel and the node columns it reads (the corner nodes), per element type. tet10 is
+#: measured on its corners.
 KERNELS: dict[str, tuple[Callable[[Sequence[Vec]], dict[str, Arr]], tuple[int, ...]]] = {
-    "hex8": (hex8_quality, tuple(range(8))),
-    "wedge6": (wedge6_quality, tuple(range(6))),
-    "pyramid5": (pyramid5_quality, tuple(range(5))),
-    "tet4": (tet4_quality, tuple(range(4))),
-    "tet10": (tet4_quality, tuple(range(4))),
-    "quad4": (quad4_quality, tuple(range(4))),
-    "tri3": (tri3_quality, tuple(range(3))),
+    etype: (kernel, tuple(range(CORNER_NODES[etype])))
+    for etype, kernel in (
+        ("hex8", hex8_quality),
+        ("wedge6", wedge6_quality),
+        ("pyramid5", pyramid5_quality),
+        ("tet4", tet4_quality),
+        ("tet10", tet4_quality),
+        ("quad4", quad4_quality),
+        ("tri3", tri3_quality),
+    )
 }
