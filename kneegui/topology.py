@@ -151,6 +151,19 @@ CORNER_TRIPLES: dict[str, tuple[tuple[int, int, int, int], ...]] = {
     "quad4": ((0, 1, 3, -1), (1, 2, 0, -1), (2, 3, 1, -1), (3, 0, 2, -1)),
 }
 
+#: Node order that turns a mirrored element positive again (a model mirrored through a plane has
+#: every element inside out): each base face walked the other way round, corresponding top nodes
+#: likewise, apexes kept. VTK lists the wedge's triangles this way round (:mod:`kneegui.io.vtu`).
+MIRRORED_NODE_ORDER: dict[str, tuple[int, ...]] = {
+    "hex8": (0, 3, 2, 1, 4, 7, 6, 5),
+    "wedge6": (0, 2, 1, 3, 5, 4),
+    "pyramid5": (0, 3, 2, 1, 4),
+    "tet4": (0, 2, 1, 3),
+    "tet10": (0, 2, 1, 3, 6, 5, 4, 7, 9, 8),
+    "quad4": (0, 3, 2, 1),
+    "tri3": (0, 2, 1),
+}
+
 
 def hex_faces_parametric() -> tuple[tuple[int, int, int, int], ...]:
     """The hex's faces (:data:`SOLID_FACES` order) as parametric cycles instead of outward ones.

@@ -15,6 +15,7 @@ from kneegui.topology import (
     ELEMENT_TYPES,
     HEX_REFERENCE_COORDS,
     LINE_TYPES,
+    MIRRORED_NODE_ORDER,
     NODES_PER_ELEMENT,
     SHELL_TYPES,
     SOLID_FACES,
@@ -190,3 +191,19 @@ def test_degenerate_hexes_become_positive_wedges_and_tets():
     assert np.all(corner_determinants(cube[conn], "wedge6") > 0)
     tet = split_degenerate_solids(np.array([[0, 1, 3, 3, 4, 4, 4, 4]]))["tet4"][1]
     assert np.all(corner_determinants(cube[tet], "tet4") > 0)
+
+
+@pytest.mark.parametrize("etype", list(MIRRORED_NODE_ORDER))
+def test_mirrored_node_order_turns_a_mirrored_element_positive(etype):
+    x = np.array(UNIT[etype]) * np.array([1.0, -1.0, 1.0])
+    order = MIRRORED_NODE_ORDER[etype]
+    assert sorted(order) == list(range(NODES_PER_ELEMENT[etype]))
+    y = x[list(order)]
+    if etype == "tet10":  # the mid-edge nodes still sit on their edges
+        half = ELEMENT_EDGES[etype]
+        for (a, m), (_, b) in zip(half[::2], half[1::2], strict=True):
+            assert np.allclose(y[m], 0.5 * (y[a] + y[b]))
+    if etype in CORNER_TRIPLES and etype != "quad4":
+        k = CORNER_NODES[etype]
+        assert np.all(corner_determinants(x[None, :k], etype) < 0)
+        assert np.all(corner_determinants(y[None, :k], etype) > 0)
