@@ -81,6 +81,12 @@ def _cos_between(a: Vec, b: Vec) -> Arr:
 
 
 # ---------------------------------------------------------------------- corner determinants
+#: :data:`kneegui.topology.CORNER_TRIPLES` as index arrays, for the node-major gathers.
+_TRIPLE_ARRAYS: dict[str, NDArray[np.int64]] = {
+    etype: np.array(table, dtype=np.int64) for etype, table in CORNER_TRIPLES.items()
+}
+
+
 def corner_vectors(
     p: Sequence[Vec], etype: str, normal: Vec | None = None
 ) -> list[tuple[Vec, Vec, Vec]]:
@@ -137,6 +143,13 @@ def corner_determinants(
 ) -> NDArray[np.float64]:
     """Corner determinants of elements given node-major: ``(..., k, 3)`` in, ``(..., T)`` out.
 
+    The same corners and edge vectors as :func:`corner_vectors`, laid out node-major for the
+    callers that gather element points (smoother, relaxation, optimiser volumes, demo repair);
+    the triple product is summed by ``einsum``, which rounds differently from the kernels'
+    component-major :func:`corner_determinants_cm` (agreement to 1e-15 relative is tested).
+    The relaxation's and the optimiser's iterations amplify such last-bit differences, so
+    each caller keeps the layout it was tuned and measured with.
+
     Parameters
     ----------
     points : (..., k, 3) ndarray of float
@@ -146,9 +159,18 @@ def corner_determinants(
     normal : (..., 3) ndarray of float, optional
         Quad shells: the normal to use instead of each quad's own.
     """
-    pts = np.moveaxis(np.asarray(points, dtype=np.float64), (-2, -1), (0, 1))  # (k, 3, ...)
-    n = None if normal is None else np.moveaxis(np.asarray(normal, dtype=np.float64), -1, 0)
-    return np.stack(corner_determinants_cm(pts, etype, n), axis=-1)
+    pts = np.asarray(points, dtype=np.float64)
+    t = _TRIPLE_ARRAYS[etype]
+    base = pts[..., t[:, 0], :]
+    a = pts[..., t[:, 1], :] - base
+    b = pts[..., t[:, 2], :] - base
+    if etype == "quad4":
+        if normal is None:
+            normal = np.cross(pts[..., 2, :] - pts[..., 0, :], pts[..., 3, :] - pts[..., 1, :])
+        c = np.broadcast_to(np.asarray(normal, dtype=np.float64)[..., None, :], a.shape)
+    else:
+        c = pts[..., t[:, 3], :] - base
+    return np.einsum("...tk,...tk->...t", np.cross(a, b), c)
 
 
 def ratio_of_determinants(dets: Sequence[Arr] | NDArray[np.float64]) -> Arr:
@@ -170,8 +192,7 @@ def ratio_of_determinants(dets: Sequence[Arr] | NDArray[np.float64]) -> Arr:
 
 def corner_jacobian(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
     """Corner Jacobian ratio of elements given node-major ``(..., k, 3)``: shape ``(...)``."""
-    pts = np.moveaxis(np.asarray(points, dtype=np.float64), (-2, -1), (0, 1))
-    return ratio_of_determinants(corner_determinants_cm(pts, etype))
+    return ratio_of_determinants(np.moveaxis(corner_determinants(points, etype), -1, 0))
 
 
 # ---------------------------------------------------------------------- face accumulators
