@@ -311,7 +311,7 @@ class LandmarkPanel(QWidget):
 
 # ---------------------------------------------------------------------------- flexion
 class FlexionPanel(QWidget):
-    """Slider and spin box, −5°…140°, driving ``Workspace.set_flexion``."""
+    """Slider and spin box over ``FLEXION_RANGE``, driving ``Workspace.set_flexion``."""
 
     def __init__(self, ws: Workspace, parent: QWidget | None = None):
         super().__init__(parent)

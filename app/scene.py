@@ -20,28 +20,8 @@ import pyvista as pv
 from numpy.typing import NDArray
 
 from kneegui.io.vtu import vtk_cell_arrays
-from kneegui.model import LINE_TYPES, SHELL_TYPES, Model
-
-#: Faces of each element type, as node positions (package node order), outward for a positive
-#: solid.
-ELEMENT_FACES: dict[str, tuple[tuple[int, ...], ...]] = {
-    "hex8": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
-    "wedge6": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
-    "pyramid5": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
-    "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-    "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-    "quad4": ((0, 1, 2, 3),),
-    "tri3": ((0, 1, 2),),
-}
-
-
-def block_offsets(model: Model) -> dict[str, int]:
-    """Global cell index of the first element of each block."""
-    offsets, start = {}, 0
-    for etype, block in model.blocks.items():
-        offsets[etype] = start
-        start += len(block)
-    return offsets
+from kneegui.model import Model
+from kneegui.topology import LINE_TYPES, SHELL_TYPES, block_offsets, boundary_faces
 
 
 def build_grid(model: Model) -> pv.UnstructuredGrid:
@@ -84,43 +64,19 @@ class PartSurface:
 
 def _boundary_faces(model: Model, pid: int) -> tuple[list[NDArray], list[NDArray], list[NDArray]]:
     """Faces used once within the part (solids), all shell faces, and line elements."""
-    offsets = block_offsets(model)
-    solid_faces: dict[int, list[tuple[NDArray, NDArray]]] = {3: [], 4: []}
-    shell_faces: list[tuple[NDArray, NDArray]] = []
-    lines: list[tuple[NDArray, NDArray]] = []
+    quads, tris, quad_cells, tri_cells = boundary_faces(model.blocks, [pid], with_cells=True)
+    faces, owners, kinds = [tris, quads], [tri_cells, quad_cells], ["face", "face"]
+    offsets = block_offsets(model.blocks)
     for etype, block in model.blocks.items():
+        if etype not in SHELL_TYPES and etype not in LINE_TYPES:
+            continue
         rows = np.flatnonzero(block.part_ids == pid)
-        if not len(rows):
-            continue
-        conn = block.conn[rows]
-        gidx = offsets[etype] + rows
-        if etype in LINE_TYPES:
-            lines.append((conn[:, :2], gidx))
-            continue
-        for face in ELEMENT_FACES[etype]:
-            target = shell_faces if etype in SHELL_TYPES else solid_faces[len(face)]
-            target.append((conn[:, list(face)], gidx))
-    faces, owners, kinds = [], [], []
-    for _k, chunks in solid_faces.items():
-        if not chunks:
-            continue
-        f = np.concatenate([c[0] for c in chunks])
-        o = np.concatenate([c[1] for c in chunks])
-        key = np.sort(f, axis=1)
-        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        once = counts[inverse.reshape(-1)] == 1
-        faces.append(f[once])
-        owners.append(o[once])
-        kinds.append("face")
-    for f, o in shell_faces:
-        faces.append(f)
-        owners.append(o)
-        kinds.append("face")
-    for f, o in lines:
-        faces.append(f)
-        owners.append(o)
-        kinds.append("line")
-    return faces, owners, kinds
+        if len(rows):
+            faces.append(block.conn[rows][:, : 2 if etype in LINE_TYPES else None])
+            owners.append(offsets[etype] + rows)
+            kinds.append("line" if etype in LINE_TYPES else "face")
+    keep = [i for i, f in enumerate(faces) if len(f)]
+    return [faces[i] for i in keep], [owners[i] for i in keep], [kinds[i] for i in keep]
 
 
 def part_surfaces(model: Model) -> dict[int, PartSurface]:

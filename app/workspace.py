@@ -30,11 +30,13 @@ from kneegui.geometry import JointAxes, compute_joint_axes
 from kneegui.io.atomic import atomic_write_text
 from kneegui.ligaments import Ligament, length_curve, ligament_fibres
 from kneegui.model import Model
-from kneegui.quality import QualityEvaluator, QualityResult
+from kneegui.quality import QualityEvaluator, QualityResult, volume_change_pct
 from kneegui.setup import ROLES, JointSetup, load_setup
+from kneegui.setup.kinematic_tables import VALIDATED_FLEXION_DEG
 
-#: Slider range (degrees).
-FLEXION_RANGE = (-5.0, 140.0)
+#: Slider range (degrees): the engine's validated flexion range (see its definition for why
+#: it is narrower than the supported one).
+FLEXION_RANGE = VALIDATED_FLEXION_DEG
 #: Heat-map metrics: key -> (label, QualityResult metric name, "low is bad" flag).
 HEATMAP_METRICS: dict[str, tuple[str, str, bool]] = {
     "jacobian": ("Jacobian", "jacobian_corner", True),
@@ -529,9 +531,9 @@ class Workspace(QObject):
         cells, evaluator, model = self._live_cells, self._evaluator, self.model
         if cells is None or evaluator is None or model is None:
             return None
-        from app.scene import block_offsets
+        from kneegui.topology import block_offsets
 
-        offsets = block_offsets(model)
+        offsets = block_offsets(model.blocks)
         rows = {}
         for etype, block in model.blocks.items():
             start = offsets[etype]
@@ -601,13 +603,13 @@ class Workspace(QObject):
             Measure only these global cells (the others are NaN): what the view shows.
         """
         assert self.model is not None and self._evaluator is not None
-        from app.scene import block_offsets
+        from kneegui.topology import block_offsets
 
         if cells is None:
             q = self.quality()
             rows = {e: np.arange(len(b)) for e, b in self.model.blocks.items()}
         else:
-            offsets = block_offsets(self.model)
+            offsets = block_offsets(self.model.blocks)
             rows = {}
             for etype, block in self.model.blocks.items():
                 start = offsets[etype]
@@ -621,7 +623,7 @@ class Workspace(QObject):
             else:
                 q = self._evaluator.evaluate(self.coords, rows)
         out = np.full(self.model.n_elements, np.nan)
-        offsets = block_offsets(self.model)
+        offsets = block_offsets(self.model.blocks)
         for etype, sel in rows.items():
             if etype not in q:
                 continue
@@ -633,8 +635,8 @@ class Workspace(QObject):
             if metric == "volume_change":
                 v0 = self._initial_quality[etype].volume[sel]
                 v = part.volume[values_rows]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    vals = np.where(v0 != 0, 100.0 * (v - v0) / np.abs(v0), np.nan)
+                vals = volume_change_pct(v, v0)
+                vals[~np.isfinite(vals)] = np.nan  # a flat initial element: no colour
             else:
                 vals = np.asarray(part.metric(HEATMAP_METRICS[metric][1]), float)[values_rows]
             out[offsets[etype] + sel] = vals
@@ -662,10 +664,10 @@ class Workspace(QObject):
     def ligament_stretch_values(self) -> NDArray[np.float64]:
         """Fibre stretch per global cell (NaN outside ligaments)."""
         assert self.model is not None
-        from app.scene import block_offsets
+        from kneegui.topology import block_offsets
 
         out = np.full(self.model.n_elements, np.nan)
-        offsets = block_offsets(self.model)
+        offsets = block_offsets(self.model.blocks)
         for lig in self.ligaments:
             s = lig.element_stretch(self.coords)
             start = 0

@@ -116,11 +116,11 @@ def measure_size(elements: int, repeats: int, heavy_repeats: int, out: Path) -> 
     """
     from kneegui.demo import generate_demo_leg
     from kneegui.io.lsdyna import read_deck, write_deck, write_model
-    from kneegui.model import SOLID_TYPES
     from kneegui.quality import compute_quality
     from kneegui.reposition import Repositioner
     from kneegui.reposition.pipeline import pose_model
     from kneegui.setup import load_setup
+    from kneegui.topology import SOLID_TYPES
 
     rec = _Recorder(out, {"requested_elements": elements, "stages": {}})
     stages = rec.record["stages"]
@@ -202,8 +202,8 @@ def pose_metrics(
     the solids (percent, signed); bone rigidity error (:func:`bench.baselines.bone_rigidity_error`).
     """
     from bench.baselines import bone_rigidity_error
-    from kneegui.model import SOLID_TYPES
     from kneegui.quality import compute_quality, summarize_quality
+    from kneegui.topology import SOLID_TYPES
 
     q = compute_quality(coords, model.blocks)
     s = summarize_quality(model.with_coords(coords), q, initial=initial_quality)["model"]
@@ -217,7 +217,7 @@ def pose_metrics(
         "worst_warpage": _finite(s["warpage"]["worst"]),
         "worst_skew": _finite(s["skew"]["worst"]),
         "worse_than_initial_aspect": s["aspect"]["worse_than_initial"],
-        "max_volume_change_pct": _finite(s["volume_change"]["max_element_percent"]),
+        "max_volume_change_pct": _finite(s["volume_change"]["max_element_pct"]),
         "bone_rigidity_error": rigidity["max"],
         "bone_rigidity_by_bone": rigidity,
     }
@@ -257,11 +257,11 @@ def measure_baselines(
     from kneegui.demo import generate_demo_leg
     from kneegui.geometry.axes import compute_joint_axes
     from kneegui.kinematics.posing import solve_bone_pose
-    from kneegui.model import SOLID_TYPES
     from kneegui.quality import compute_quality
     from kneegui.reposition import METHODS, Repositioner, RepositionOptions, classify_nodes
     from kneegui.reposition.pipeline import pose_model
     from kneegui.setup import load_setup
+    from kneegui.topology import SOLID_TYPES
 
     default_method = RepositionOptions().method
     others = [m for m in (METHODS if methods is None else methods) if m != default_method]

@@ -28,9 +28,9 @@ import numpy as np
 
 from bench.machine import machine_description
 from kneegui.meshopt import degraded_elements, smooth_posed_model, smoothing_free_nodes
-from kneegui.meshopt.topology import SOLID_FACES, row_multiplicity
 from kneegui.model import ElementBlock, Model, Part
 from kneegui.quality import QualityEvaluator, compute_quality
+from kneegui.topology import SOLID_FACES, row_multiplicity
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -5,7 +5,8 @@ The engine uses numpy and scipy only; it never imports Qt, VTK or pyvista (the G
 """
 
 from kneegui.errors import DeckError, GeometryError, KneeguiError, SetupError
-from kneegui.model import ELEMENT_TYPES, ElementBlock, Model, Part
+from kneegui.model import ElementBlock, Model, Part
+from kneegui.topology import ELEMENT_TYPES
 
 __all__ = [
     "ELEMENT_TYPES",

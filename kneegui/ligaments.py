@@ -22,7 +22,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import GeometryError
-from kneegui.model import ELEMENT_EDGES, Model
+from kneegui.model import Model
+from kneegui.topology import ELEMENT_EDGES
 
 #: Short names recognised in part titles, in the order they are tried.
 _SHORT_NAMES: tuple[tuple[str, str], ...] = (

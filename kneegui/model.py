@@ -4,17 +4,7 @@ One source of truth for geometry: ``Model.coords`` is one (N, 3) float64 array, 
 block refers to nodes by their *index* into it (not by node id). ``Model.node_ids`` maps index to
 id; :meth:`Model.node_index` maps ids back to indices (vectorised).
 
-Node ordering conventions (LS-DYNA's, which VTK shares except for the wedge):
-
-- ``hex8``: 0-3 bottom face counter-clockwise seen from the top, 4-7 the top face above them.
-- ``wedge6``: triangle 0,1,2 counter-clockwise seen from triangle 3,4,5; edges i -> i+3.
-  (VTK's wedge lists the base triangle clockwise; the viewer swaps 1<->2 and 4<->5.)
-- ``pyramid5``: quad base 0-3 counter-clockwise seen from apex 4.
-- ``tet4``: triangle 0,1,2 counter-clockwise seen from apex 3. ``tet10``: 4 corners + 6 mid-edge
-  nodes (0-1, 1-2, 2-0, 0-3, 1-3, 2-3).
-- ``quad4``/``tri3`` shells, ``beam2`` and ``discrete`` two-node elements.
-
-A positive element therefore has ``((x1 - x0) x (x2 - x0)) . (x_top - x0) > 0``.
+Element types, node order, edges, faces and corners live in :mod:`kneegui.topology`.
 """
 
 from __future__ import annotations
@@ -27,93 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import KneeguiError
-
-#: Nodes per element, for every element type the model holds.
-NODES_PER_ELEMENT: dict[str, int] = {
-    "hex8": 8,
-    "wedge6": 6,
-    "pyramid5": 5,
-    "tet4": 4,
-    "tet10": 10,
-    "quad4": 4,
-    "tri3": 3,
-    "beam2": 2,
-    "discrete": 2,
-}
-ELEMENT_TYPES: tuple[str, ...] = tuple(NODES_PER_ELEMENT)
-
-_HEX_EDGES = (
-    (0, 1),
-    (1, 2),
-    (2, 3),
-    (3, 0),
-    (4, 5),
-    (5, 6),
-    (6, 7),
-    (7, 4),
-    (0, 4),
-    (1, 5),
-    (2, 6),
-    (3, 7),
-)
-#: Edges of each element type as pairs of local node numbers (this module's node order); a
-#: 10-node tet's edges run through its mid-edge nodes.
-ELEMENT_EDGES: dict[str, tuple[tuple[int, int], ...]] = {
-    "hex8": _HEX_EDGES,
-    "wedge6": ((0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)),
-    "pyramid5": ((0, 1), (1, 2), (2, 3), (3, 0), (0, 4), (1, 4), (2, 4), (3, 4)),
-    "tet4": ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)),
-    "tet10": (
-        (0, 4),
-        (4, 1),
-        (1, 5),
-        (5, 2),
-        (2, 6),
-        (6, 0),
-        (0, 7),
-        (7, 3),
-        (1, 8),
-        (8, 3),
-        (2, 9),
-        (9, 3),
-    ),
-    "quad4": ((0, 1), (1, 2), (2, 3), (3, 0)),
-    "tri3": ((0, 1), (1, 2), (2, 0)),
-    "beam2": ((0, 1),),
-    "discrete": ((0, 1),),
-}
-#: Faces of each solid type as local node cycles, outward for a positive element (a 10-node
-#: tet's faces by their corner nodes).
-SOLID_FACES: dict[str, tuple[tuple[int, ...], ...]] = {
-    "hex8": ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)),
-    "wedge6": ((0, 2, 1), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)),
-    "pyramid5": ((0, 3, 2, 1), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)),
-    "tet4": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-    "tet10": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (2, 0, 3)),
-}
-#: Corners of each element type as (corner, a, b, c): the corner determinant is
-#: ``det(p[a] - p[i], p[b] - p[i], p[c] - p[i])`` (positive for a valid element); for quad shells
-#: ``c`` is -1 and the element's mean normal takes its place. A 10-node tet uses its corners.
-CORNER_TRIPLES: dict[str, tuple[tuple[int, int, int, int], ...]] = {
-    "hex8": (
-        (0, 1, 3, 4),
-        (1, 2, 0, 5),
-        (2, 3, 1, 6),
-        (3, 0, 2, 7),
-        (4, 7, 5, 0),
-        (5, 4, 6, 1),
-        (6, 5, 7, 2),
-        (7, 6, 4, 3),
-    ),
-    "wedge6": ((0, 1, 2, 3), (1, 2, 0, 4), (2, 0, 1, 5), (3, 5, 4, 0), (4, 3, 5, 1), (5, 4, 3, 2)),
-    "pyramid5": ((0, 1, 3, 4), (1, 2, 0, 4), (2, 3, 1, 4), (3, 0, 2, 4)),
-    "tet4": ((0, 1, 2, 3),),
-    "tet10": ((0, 1, 2, 3),),
-    "quad4": ((0, 1, 3, -1), (1, 2, 0, -1), (2, 3, 1, -1), (3, 0, 2, -1)),
-}
-SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4", "tet10")
-SHELL_TYPES: tuple[str, ...] = ("quad4", "tri3")
-LINE_TYPES: tuple[str, ...] = ("beam2", "discrete")
+from kneegui.topology import NODES_PER_ELEMENT
 
 
 @dataclass(frozen=True)
@@ -123,7 +27,7 @@ class ElementBlock:
     Attributes
     ----------
     etype : str
-        One of :data:`ELEMENT_TYPES`.
+        One of :data:`kneegui.topology.ELEMENT_TYPES`.
     ids : (M,) ndarray of int64
         Element ids.
     part_ids : (M,) ndarray of int64
@@ -359,130 +263,3 @@ class Model:
         if self.n_nodes == 0:
             return np.zeros((2, 3))
         return np.stack([self.coords.min(axis=0), self.coords.max(axis=0)])
-
-
-# ---------------------------------------------------------------------- degenerate solids
-_HEX_FACES = np.array(
-    [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
-)
-
-
-def _wedge_patterns() -> list[tuple[tuple[int, int], tuple[int, int], tuple[int, ...]]]:
-    """For each way an 8-node hex collapses into a wedge, the two merged edges and the wedge order.
-
-    A wedge stored as a hex has two opposite edges of one face merged (that face becomes a line).
-    The two faces that contain exactly one merged edge are the wedge's triangles; their third
-    direction gives the i -> i+3 edges. Orientation follows the hex: a positive hex gives a
-    positive wedge.
-    """
-    # hex faces listed with outward normals; "bottom" (0,1,2,3) inward is the reference.
-    faces = [(0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)]
-    opposite = {0: 1, 1: 0, 2: 4, 4: 2, 3: 5, 5: 3}
-    patterns = []
-    for fi, face in enumerate(faces):
-        for k in (0, 1):
-            e1 = (face[k], face[k + 1])
-            e2 = (face[(k + 2) % 4], face[(k + 3) % 4])
-            # triangle faces: the two other faces containing e1 and e2 respectively
-            tri_faces = []
-            for e in (e1, e2):
-                for fj, f in enumerate(faces):
-                    if fj != fi and e[0] in f and e[1] in f:
-                        tri_faces.append(fj)
-            fa, fb = tri_faces
-            assert opposite[fa] == fb
-            # map each node of face fa to its neighbour on face fb along the connecting edges
-            edges = set(_HEX_EDGES)
-            edges |= {(b, a) for a, b in edges}
-            fa_nodes, fb_nodes = faces[fa], faces[fb]
-            partner = {a: next(b for b in fb_nodes if (a, b) in edges) for a in fa_nodes}
-            # walk face fa in the hex's positive sense: the sense in which the *bottom* face
-            # (0,1,2,3) is listed, i.e. counter-clockwise seen from the opposite face.
-            ring = list(fa_nodes)
-            # make ring counter-clockwise seen from fb: faces[] are listed so that face 0 is ccw
-            # seen from inside; outward-listed faces (1..5 as written) need reversal except 0.
-            if fa != 0:
-                ring = ring[::-1]
-            merged = e1 if e1[0] in ring and e1[1] in ring else e2
-            # drop the second node of the merged edge (it equals the first)
-            drop = merged[1]
-            tri = [n for n in ring if n != drop]
-            order = tuple(tri + [partner[n] for n in tri])
-            patterns.append((e1, e2, order))
-    return patterns
-
-
-_WEDGE_PATTERNS = _wedge_patterns()
-
-
-def split_degenerate_solids(
-    conn8: NDArray[np.int64],
-) -> dict[str, tuple[NDArray[np.int64], NDArray[np.int64]]]:
-    """Recognise 8-node solids with repeated nodes as wedges, pyramids or tetrahedra.
-
-    Parameters
-    ----------
-    conn8 : (M, 8) ndarray of int
-        Node ids or indices of 8-node solids as written in the deck.
-
-    Returns
-    -------
-    dict
-        ``etype -> (rows, conn)``: for each recognised type, the row numbers into ``conn8`` and
-        the rebuilt connectivity in this module's node order. Rows that fit no pattern (for
-        example an element collapsed to a plane) stay ``hex8`` so that quality checks flag them.
-    """
-    conn8 = np.asarray(conn8)
-    m = len(conn8)
-    # every degenerate pattern merges at least one hex edge: count distinct nodes only there
-    merged = np.zeros(m, dtype=bool)
-    for a, b in _HEX_EDGES:
-        merged |= conn8[:, a] == conn8[:, b]
-    n_distinct = np.full(m, 8, dtype=np.int64)
-    rows_merged = np.flatnonzero(merged)
-    if len(rows_merged):
-        srt = np.sort(conn8[rows_merged], axis=1)
-        n_distinct[rows_merged] = 1 + np.count_nonzero(srt[:, 1:] != srt[:, :-1], axis=1)
-    result: dict[str, tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
-    assigned = n_distinct == 8
-    # wedges: exactly 6 distinct nodes and a known merged-edge pattern
-    cand = np.flatnonzero(n_distinct == 6)
-    wedge_rows, wedge_conn = [], []
-    if len(cand):
-        c = conn8[cand]
-        done = np.zeros(len(cand), dtype=bool)
-        for e1, e2, order in _WEDGE_PATTERNS:
-            hit = ~done & (c[:, e1[0]] == c[:, e1[1]]) & (c[:, e2[0]] == c[:, e2[1]])
-            if hit.any():
-                wedge_rows.append(cand[hit])
-                wedge_conn.append(c[hit][:, list(order)])
-                done |= hit
-    if wedge_rows:
-        rows = np.concatenate(wedge_rows)
-        result["wedge6"] = (rows, np.concatenate(wedge_conn))
-        assigned[rows] = True
-    # pyramids: 5 distinct, top face fully merged to one apex (pattern 1,2,3,4,5,5,5,5)
-    cand = np.flatnonzero(n_distinct == 5)
-    if len(cand):
-        c = conn8[cand]
-        top_merged = (c[:, 4] == c[:, 5]) & (c[:, 5] == c[:, 6]) & (c[:, 6] == c[:, 7])
-        if top_merged.any():
-            rows = cand[top_merged]
-            result["pyramid5"] = (rows, conn8[rows][:, [0, 1, 2, 3, 4]])
-            assigned[rows] = True
-    # tetrahedra: 4 distinct nodes, in order of first appearance (1,2,3,3,4,4,4,4 -> 1,2,3,4)
-    cand = np.flatnonzero(n_distinct == 4)
-    if len(cand):
-        c = conn8[cand]
-        first = np.ones_like(c, dtype=bool)
-        for j in range(1, 8):
-            first[:, j] = np.all(c[:, :j] != c[:, j : j + 1], axis=1)
-        tets = c[first].reshape(-1, 4)
-        result["tet4"] = (cand, tets)
-        assigned[cand] = True
-    rest = np.flatnonzero(assigned & (n_distinct == 8))
-    rest = np.concatenate([rest, np.flatnonzero(~assigned)])
-    rest.sort()
-    if len(rest) or m == 0:
-        result["hex8"] = (rest, conn8[rest])
-    return result

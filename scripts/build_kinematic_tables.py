@@ -12,7 +12,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kneegui.setup.kinematic_tables import TABLES_DIR, resolve_table, shipped_tables
+from kneegui.setup.kinematic_tables import (
+    SUPPORTED_FLEXION_DEG,
+    TABLES_DIR,
+    resolve_table,
+    shipped_tables,
+)
 
 WALKER_SOURCE = (
     "Walker et al. 1988 (in vitro), as quoted in ALGORITHM.md section 2: "
@@ -63,7 +68,7 @@ PATELLAR_TILT_SOURCE = (
 )
 
 #: Flexion sampling of the cubic tables, degrees (1-degree steps, interpolation error < 1e-3 deg).
-CUBIC_GRID = np.arange(-10.0, 150.0 + 0.5, 1.0)
+CUBIC_GRID = np.arange(SUPPORTED_FLEXION_DEG[0], SUPPORTED_FLEXION_DEG[1] + 0.5, 1.0)
 
 
 def _write(path: Path, flexion: NDArray[np.float64], value: NDArray[np.float64], source: str):

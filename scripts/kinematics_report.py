@@ -18,9 +18,10 @@ from kneegui.demo import generate_demo_leg
 from kneegui.geometry.axes import compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import apply_bone_transforms, solve_bone_pose
 from kneegui.setup.format import load_setup
+from kneegui.setup.kinematic_tables import VALIDATED_FLEXION_DEG
 from kneegui.setup.landmarks import suggest_setup
 
-TARGETS = (-5.0, 0.0, 30.0, 60.0, 90.0, 120.0, 140.0)
+TARGETS = (VALIDATED_FLEXION_DEG[0], 0.0, 30.0, 60.0, 90.0, 120.0, VALIDATED_FLEXION_DEG[1])
 
 
 def _max_relative_distance_change(a: np.ndarray, b: np.ndarray, sample: int = 400) -> float:

@@ -17,10 +17,10 @@ from pathlib import Path
 
 from kneegui.demo import generate_demo_leg, write_demo
 from kneegui.io.lsdyna import read_deck
-from kneegui.model import SOLID_TYPES
 from kneegui.quality import compute_quality
 from kneegui.reposition import Repositioner
 from kneegui.setup import load_setup
+from kneegui.topology import SOLID_TYPES
 
 
 def main() -> int:

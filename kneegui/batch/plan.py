@@ -20,8 +20,8 @@ from typing import Any
 
 from kneegui.errors import PlanError, SetupError
 from kneegui.reposition.pipeline import angle_tag
-from kneegui.reposition.repositioner import FLEXION_RANGE, METHODS
-from kneegui.setup.kinematic_tables import QUANTITIES, resolve_table
+from kneegui.reposition.repositioner import METHODS
+from kneegui.setup.kinematic_tables import QUANTITIES, SUPPORTED_FLEXION_DEG, resolve_table
 
 #: Posture options a plan may set in ``[defaults]`` or per deck, with their type and default.
 OPTION_DEFAULTS: dict[str, Any] = {
@@ -478,7 +478,7 @@ def _angles(chk: _Checker, value: Any, key: Key) -> list[tuple[float, Key]]:
     if not items:
         raise chk.error("no angle given", key)
     out: list[tuple[float, Key]] = []
-    lo, hi = FLEXION_RANGE
+    lo, hi = SUPPORTED_FLEXION_DEG
     for k, item in enumerate(items):
         here = (*key, k) if isinstance(value, list) else key
         if isinstance(item, dict):

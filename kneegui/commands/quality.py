@@ -7,7 +7,6 @@ import json
 from pathlib import Path
 
 from kneegui.io.atomic import atomic_write_text
-from kneegui.model import SOLID_TYPES
 from kneegui.quality import (
     compute_quality,
     format_quality_table,
@@ -16,6 +15,7 @@ from kneegui.quality import (
     quality_gate,
     summarize_quality,
 )
+from kneegui.topology import SOLID_TYPES
 
 NAME = "quality"
 HELP = "Print the mesh quality of a deck (Jacobian, aspect ratio, warpage, skew) like Table I."

@@ -16,6 +16,7 @@ from kneegui.demo.sliding import detach_soft_tissue
 from kneegui.errors import KneeguiError
 from kneegui.io.atomic import atomic_write_text
 from kneegui.model import ElementBlock, Model, NodeSet, Part
+from kneegui.topology import MIRRORED_NODE_ORDER
 
 DECK_NAME = "demo_leg.k"
 SETUP_NAME = "demo_leg.setup.json"
@@ -341,8 +342,8 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
     quad_conn = remap[quad_conn]
     if side == "left":
         coords[:, 1] *= -1.0
-        hex_conn = hex_conn[:, [0, 3, 2, 1, 4, 7, 6, 5]]
-        quad_conn = quad_conn[:, [0, 3, 2, 1]]
+        hex_conn = hex_conn[:, list(MIRRORED_NODE_ORDER["hex8"])]
+        quad_conn = quad_conn[:, list(MIRRORED_NODE_ORDER["quad4"])]
     node_ids = np.arange(1, len(used) + 1, dtype=np.int64)
     n_hex = len(hex_conn)
     shell_start = 10 ** len(str(n_hex)) + 1

@@ -26,7 +26,7 @@ from scipy.sparse.linalg import cg
 
 from kneegui.demo.design import DemoDesign, smoothstep
 from kneegui.demo.layout import Layout
-from kneegui.model import ELEMENT_EDGES
+from kneegui.topology import ELEMENT_EDGES, SOLID_FACES
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -36,11 +36,6 @@ VOID, FEMUR, TIBIA, FIBULA, PATELLA, FLESH = 0, 1, 2, 3, 4, 5
 ACL, PCL, MCL, LCL, MENISCUS_LAT, MENISCUS_MED = 6, 7, 8, 9, 10, 11
 BONES = (FEMUR, TIBIA, FIBULA, PATELLA)
 SOFT_WITH_CAPSULE = (FLESH, MCL, LCL)
-
-#: Outward faces of a positive hex (LS-DYNA / VTK order).
-HEX_FACES = np.array(
-    [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
-)
 
 
 def rotate_about_y(points: FloatArray, angle: FloatArray | float) -> FloatArray:
@@ -692,7 +687,7 @@ def _flexion_weights(design, lay, ix, zn, labels, conn, k_mt, k_fb) -> FloatArra
 def _shells(lay: Layout, ix: _Index, conn: IntArray, labels: IntArray) -> dict:
     """Quad shells on the faces between labels: cortical, skin, capsule, tendon."""
     n_slots = len(conn)
-    faces = conn[:, HEX_FACES].reshape(-1, 4)  # outward from their cell
+    faces = conn[:, np.array(SOLID_FACES["hex8"])].reshape(-1, 4)  # outward from their cell
     owner = np.repeat(np.arange(n_slots), 6)
     key = np.sort(faces, axis=1)[:, :3]  # three corners identify a face of a conforming grid
     n = np.int64(conn.max() + 1)

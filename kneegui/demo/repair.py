@@ -28,6 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.quality.kernels import HEX_FACES, corner_jacobian
+from kneegui.topology import ELEMENT_EDGES
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
@@ -64,9 +67,9 @@ class QualityTargets:
     def from_thresholds(cls, margin: tuple[float, float, float] = TARGET_MARGIN) -> QualityTargets:
         """The default fail limits (``resources/quality_thresholds.csv``, role ``*``), tightened
         by ``margin`` (factors on the Jacobian, aspect and warpage limits)."""
-        from kneegui.quality import load_thresholds
+        from kneegui.quality.thresholds import default_thresholds
 
-        limits = load_thresholds().for_role(None)
+        limits = default_thresholds().for_role(None)
         return cls(
             jacobian=limits["jacobian"].fail * margin[0],
             aspect=limits["aspect"].fail / margin[1],
@@ -243,24 +246,8 @@ def _inverts(coords, node, trials, guards) -> BoolArray:
     return np.any(was_valid[None, :] & ~(jac > 0), axis=1)
 
 
-#: Corner Jacobian columns of a hex: for each corner, the (from, to) nodes of its xi, eta and
-#: zeta edges (the same sample points as kneegui.quality.kernels.hex8_quality).
-_EX = np.array([[0, 1], [3, 2], [4, 5], [7, 6]])
-_EY = np.array([[0, 3], [1, 2], [4, 7], [5, 6]])
-_EZ = np.array([[0, 4], [1, 5], [3, 7], [2, 6]])
-_CORNER = np.array(
-    [(0, 0, 0), (0, 1, 1), (1, 1, 3), (1, 0, 2), (2, 2, 0), (2, 3, 1), (3, 3, 3), (3, 2, 2)]
-)
-#: Hex faces as node cycles (unsigned metrics: orientation does not matter).
-_FACES = np.array(
-    [[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [3, 2, 6, 7], [0, 3, 7, 4]]
-)
-
-
-def _ratio(dets: FloatArray) -> FloatArray:
-    """min / max over the last axis, -1 where the max is <= 0."""
-    hi = dets.max(axis=-1)
-    return np.where(hi > 0, dets.min(axis=-1) / np.where(hi > 0, hi, 1.0), -1.0)
+#: Hex faces as the quality kernels' parametric cycles (unsigned metrics).
+_FACES = np.array(HEX_FACES)
 
 
 def _face_metrics(p: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -283,14 +270,9 @@ def _angle(a: FloatArray, b: FloatArray) -> FloatArray:
 
 def _hex_metrics(p: FloatArray) -> dict[str, FloatArray]:
     """Corner Jacobian, aspect and warpage of hexes ``(..., 8, 3)``."""
-    ex = p[..., _EX[:, 1], :] - p[..., _EX[:, 0], :]
-    ey = p[..., _EY[:, 1], :] - p[..., _EY[:, 0], :]
-    ez = p[..., _EZ[:, 1], :] - p[..., _EZ[:, 0], :]
-    a, b, c = ex[..., _CORNER[:, 0], :], ey[..., _CORNER[:, 1], :], ez[..., _CORNER[:, 2], :]
-    dets = np.einsum("...i,...i", np.cross(a, b), c)
     aspect, warp = _face_metrics(p[..., _FACES, :])
     return {
-        "jacobian_corner": _ratio(dets),
+        "jacobian_corner": corner_jacobian(p, "hex8"),
         "aspect": aspect.max(axis=-1),
         "warpage": warp.max(axis=-1),
     }
@@ -298,11 +280,8 @@ def _hex_metrics(p: FloatArray) -> dict[str, FloatArray]:
 
 def _quad_metrics(p: FloatArray) -> dict[str, FloatArray]:
     """Corner Jacobian, aspect and warpage of quads ``(..., 4, 3)``."""
-    normal = np.cross(p[..., 2, :] - p[..., 0, :], p[..., 3, :] - p[..., 1, :])
-    e = np.roll(p, -1, axis=-2) - p
-    dets = np.einsum("...ki,...i->...k", np.cross(e, -np.roll(e, 1, axis=-2)), normal)
     aspect, warp = _face_metrics(p)
-    return {"jacobian_corner": _ratio(dets), "aspect": aspect, "warpage": warp}
+    return {"jacobian_corner": corner_jacobian(p, "quad4"), "aspect": aspect, "warpage": warp}
 
 
 def _incidence(nodes: IntArray, conn: IntArray, n: int) -> list[IntArray]:
@@ -317,21 +296,7 @@ def _incidence(nodes: IntArray, conn: IntArray, n: int) -> list[IntArray]:
     return [np.unique(rows[bounds[i] : bounds[i + 1]]) for i in range(len(nodes))]
 
 
-#: Node pairs joined by a hex edge.
-_HEX_EDGES = (
-    (0, 1),
-    (1, 2),
-    (2, 3),
-    (3, 0),
-    (4, 5),
-    (5, 6),
-    (6, 7),
-    (7, 4),
-    (0, 4),
-    (1, 5),
-    (2, 6),
-    (3, 7),
-)
+_HEX_EDGES = ELEMENT_EDGES["hex8"]
 
 
 def _edge_neighbours(nodes: IntArray, hexes: IntArray, n: int) -> list[IntArray]:

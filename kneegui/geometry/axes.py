@@ -98,7 +98,8 @@ class KneeLandmarks(Protocol):
 
 @lru_cache(maxsize=1)
 def condyle_fit_limits() -> dict[str, float]:
-    """Warning limits of the condyle fit (``resources/kinematics/condyle_fit_limits.csv``)."""
+    """Warning limits of the condyle fits and the axes
+    (``resources/kinematics/condyle_fit_limits.csv``)."""
     with open(RESOURCES_DIR / "kinematics" / "condyle_fit_limits.csv", newline="") as fh:
         return {row["name"]: float(row["value"]) for row in csv.DictReader(fh)}
 
@@ -451,7 +452,7 @@ def compute_joint_axes(model_coords: ArrayLike, setup: KneeLandmarks) -> JointAx
     patella_nodes = setup.segment_nodes["patella"]
     coords = np.asarray(model_coords, dtype=np.float64)
     patella_center = _frozen(coords[patella_nodes].mean(axis=0)) if len(patella_nodes) else None
-    if not -30.0 <= flexion <= 150.0:
+    if not limits["initial_flexion_min"] <= flexion <= limits["initial_flexion_max"]:
         warnings.append(
             f"initial flexion {flexion:.1f} deg is implausible: check 'side' and the axis points"
         )

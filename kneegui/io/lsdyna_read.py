@@ -36,7 +36,8 @@ from kneegui.io.fields import (
     parse_int_columns,
     parse_int_field,
 )
-from kneegui.model import ElementBlock, Model, NodeSet, Part, PartSet, split_degenerate_solids
+from kneegui.model import ElementBlock, Model, NodeSet, Part, PartSet
+from kneegui.topology import split_degenerate_solids
 
 _NL, _CR, _STAR, _DOLLAR, _SPACE, _COMMA, _TAB = 10, 13, 42, 36, 32, 44, 9
 

@@ -12,11 +12,13 @@ import numpy as np
 
 from kneegui.io.atomic import atomic_write_bytes
 from kneegui.model import Model
+from kneegui.topology import MIRRORED_NODE_ORDER
 
-#: VTK cell type numbers, and the permutation from this package's node order to VTK's.
+#: VTK cell type numbers, and the permutation from this package's node order to VTK's (VTK
+#: lists a wedge's triangles the other way round: the mirrored order of kneegui.topology).
 VTK_CELLS: dict[str, tuple[int, list[int]]] = {
     "hex8": (12, [0, 1, 2, 3, 4, 5, 6, 7]),
-    "wedge6": (13, [0, 2, 1, 3, 5, 4]),
+    "wedge6": (13, list(MIRRORED_NODE_ORDER["wedge6"])),
     "pyramid5": (14, [0, 1, 2, 3, 4]),
     "tet4": (10, [0, 1, 2, 3]),
     "tet10": (24, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]),

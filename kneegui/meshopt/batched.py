@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.meshopt.topology import ELEMENT_EDGES
+from kneegui.topology import ELEMENT_EDGES
 
 _W = 8  # corner determinants per element, padded (hex has 8)
 _K = 4  # node edges per element, padded (a pyramid apex has 4)

@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from kneegui.meshopt.foldover_kernel import foldover_free_energy
 from kneegui.meshopt.quality_optimiser import QualityOptimisationReport
-from kneegui.meshopt.smoother import corner_determinants
+from kneegui.quality.kernels import corner_determinants
 
 
 def edge_matrices(x: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:

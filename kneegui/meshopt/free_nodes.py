@@ -7,9 +7,10 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.meshopt.topology import boundary_node_mask, node_part_count
+from kneegui.meshopt.nodes import boundary_node_mask, node_part_count
 from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult
+from kneegui.quality.thresholds import JACOBIAN_WARN
 
 #: Solid types whose nodes the smoother can move (tet10 mid-side nodes would be left behind).
 MOVABLE_SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4")
@@ -18,7 +19,7 @@ MOVABLE_SOLID_TYPES: tuple[str, ...] = ("hex8", "wedge6", "pyramid5", "tet4")
 def degraded_elements(
     result: QualityResult,
     initial: QualityResult | None = None,
-    threshold: float = 0.6,
+    threshold: float = JACOBIAN_WARN,
     tolerance: float = 0.02,
 ) -> dict[str, NDArray[np.bool_]]:
     """Elements the smoother should work on.

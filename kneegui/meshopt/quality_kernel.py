@@ -48,15 +48,7 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
         k = elem_ptr[e + 1] - p0
         for i in range(k):
             c = corners[p0 + i]
-            ax = x[c[1], 0] - x[c[0], 0]
-            ay = x[c[1], 1] - x[c[0], 1]
-            az = x[c[1], 2] - x[c[0], 2]
-            bx = x[c[2], 0] - x[c[0], 0]
-            by = x[c[2], 1] - x[c[0], 1]
-            bz = x[c[2], 2] - x[c[0], 2]
-            ex = x[c[3], 0] - x[c[0], 0]
-            ey = x[c[3], 1] - x[c[0], 1]
-            ez = x[c[3], 2] - x[c[0], 2]
+            ax, ay, az, bx, by, bz, ex, ey, ez = _corner_vectors(x, c)
             d = ex * (ay * bz - az * by) + ey * (az * bx - ax * bz) + ez * (ax * by - ay * bx)
             if not d > 0.0:
                 return math.inf
@@ -89,15 +81,7 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
                 continue
             s = g_log[i] / dets[i] + g_volume
             c = corners[p0 + i]
-            ax = x[c[1], 0] - x[c[0], 0]
-            ay = x[c[1], 1] - x[c[0], 1]
-            az = x[c[1], 2] - x[c[0], 2]
-            bx = x[c[2], 0] - x[c[0], 0]
-            by = x[c[2], 1] - x[c[0], 1]
-            bz = x[c[2], 2] - x[c[0], 2]
-            ex = x[c[3], 0] - x[c[0], 0]
-            ey = x[c[3], 1] - x[c[0], 1]
-            ez = x[c[3], 2] - x[c[0], 2]
+            ax, ay, az, bx, by, bz, ex, ey, ez = _corner_vectors(x, c)
             # d = (a x b) . e: dd/da = b x e, dd/db = e x a, dd/de = a x b
             gax = s * (by * ez - bz * ey)
             gay = s * (bz * ex - bx * ez)
@@ -181,6 +165,22 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             grad[n1, 1] -= gqy
             grad[n1, 2] -= gqz
     return total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _corner_vectors(x, c):  # pragma: no cover - compiled
+    """The corner's edge vectors ``a, b, e`` (``x[c[j]] - x[c[0]]``, j = 1, 2, 3) as 9 floats:
+    :data:`kneegui.topology.CORNER_TRIPLES` as in :func:`kneegui.quality.kernels.corner_vectors`."""
+    ax = x[c[1], 0] - x[c[0], 0]
+    ay = x[c[1], 1] - x[c[0], 1]
+    az = x[c[1], 2] - x[c[0], 2]
+    bx = x[c[2], 0] - x[c[0], 0]
+    by = x[c[2], 1] - x[c[0], 1]
+    bz = x[c[2], 2] - x[c[0], 2]
+    ex = x[c[3], 0] - x[c[0], 0]
+    ey = x[c[3], 1] - x[c[0], 1]
+    ez = x[c[3], 2] - x[c[0], 2]
+    return ax, ay, az, bx, by, bz, ex, ey, ez
 
 
 @njit(cache=True, nogil=True, inline="always")

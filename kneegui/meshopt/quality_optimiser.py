@@ -43,9 +43,11 @@ from numpy.typing import NDArray
 from kneegui.errors import Cancelled
 from kneegui.meshopt.lbfgs import minimize_lbfgs
 from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_penalty
-from kneegui.model import CORNER_TRIPLES, SOLID_FACES, ElementBlock
+from kneegui.model import ElementBlock
+from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult, compute_quality
-from kneegui.quality.thresholds import Thresholds, load_thresholds
+from kneegui.quality.thresholds import Thresholds, default_thresholds
+from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, ELEMENT_FACES
 
 ProgressCallback = Callable[[float, str], None]
 #: ``constraints(coords) -> (nodes, normals, offsets)``: node ``nodes[k]`` should satisfy
@@ -57,13 +59,11 @@ ConstraintCallback = Callable[
 #: Solid types with corner determinants (a tet has one corner: only its sign counts).
 SOLID_CORNER_TYPES = ("hex8", "wedge6", "pyramid5", "tet4")
 OPTIMISED_TYPES = (*SOLID_CORNER_TYPES, "quad4")
-#: Corner nodes of each type (the connectivity columns read).
-CORNER_NODES = {"hex8": 8, "wedge6": 6, "pyramid5": 5, "tet4": 4, "quad4": 4}
 QUAD_TRIPLES = np.array([t[:3] for t in CORNER_TRIPLES["quad4"]], dtype=np.int64)
 #: Faces of each type as 4 local nodes, triangles padded with -1 (a shell is its own face).
 _FACES = {
     etype: np.array([(*f, -1) if len(f) == 3 else f for f in faces], dtype=np.int64)
-    for etype, faces in {**SOLID_FACES, "quad4": ((0, 1, 2, 3),)}.items()
+    for etype, faces in ELEMENT_FACES.items()
     if etype in OPTIMISED_TYPES
 }
 
@@ -103,7 +103,7 @@ def quality_aims(
     thresholds : Thresholds, optional
         Default: ``resources/quality_thresholds.csv``; its default (``*``) warn levels are used.
     jacobian_cap : float, optional
-        Highest corner Jacobian asked of any element (default: the warn level, 0.6).
+        Highest corner Jacobian asked of any element (default: the warn level).
     rest_coords : (N, 3) ndarray, optional
         The initial coordinates, for the solids' reference volumes.
     volume_change : float, optional
@@ -115,7 +115,7 @@ def quality_aims(
     QualityAims
         Jacobian ``min(initial, cap)``; aspect, warpage and skew ``max(initial, warn)``.
     """
-    levels = (thresholds or load_thresholds()).for_role(None)
+    levels = (thresholds or default_thresholds()).for_role(None)
     cap = levels["jacobian"].warn if jacobian_cap is None else float(jacobian_cap)
     out: dict[str, dict[str, NDArray[np.float64]]] = {
         m: {} for m in ("jacobian", "aspect", "warpage", "skew")
@@ -138,11 +138,8 @@ def quality_aims(
     if rest_coords is not None and volume_change is not None:
         for etype in SOLID_CORNER_TYPES:
             if etype in blocks and len(blocks[etype]):
-                triples = np.array(CORNER_TRIPLES[etype], dtype=np.int64)
-                corners = blocks[etype].conn[:, : CORNER_NODES[etype]][:, triples]
-                p = rest_coords[corners]  # (m, k, 4, 3)
-                a, b, c = (p[:, :, j] - p[:, :, 0] for j in (1, 2, 3))
-                volume[etype] = np.einsum("mkj,mkj->mk", np.cross(a, b), c).mean(axis=1)
+                conn = blocks[etype].conn[:, : CORNER_NODES[etype]]
+                volume[etype] = corner_determinants(rest_coords[conn], etype).mean(axis=1)
     return QualityAims(
         **out,
         volume=volume,
@@ -202,10 +199,8 @@ def shortfall_region(
                 miss |= q.metric(metric) > limit[rows]
         reference = aims.volume.get(etype)
         if reference is not None and np.isfinite(aims.volume_change):
-            triples = np.array(CORNER_TRIPLES[etype], dtype=np.int64)
-            p = coords[conn[rows][:, triples]]
-            a, b, c = (p[:, :, j] - p[:, :, 0] for j in (1, 2, 3))
-            ratio = np.einsum("mkj,mkj->mk", np.cross(a, b), c).mean(axis=1) / reference[rows]
+            volume = corner_determinants(coords[conn[rows]], etype).mean(axis=1)
+            ratio = volume / reference[rows]
             band = 1.0 + aims.volume_change
             miss |= (ratio > band) | (ratio < 1.0 / band)
         region[conn[rows[miss]]] = True

@@ -26,28 +26,26 @@ from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import Cancelled, GeometryError
 from kneegui.meshopt.batched import build_problems, nelder_mead
-from kneegui.meshopt.topology import (
-    ELEMENT_EDGES,
-    SOLID_FACES,
-    boundary_faces,
-    boundary_node_normals,
-    unique_pairs,
-)
-from kneegui.model import CORNER_TRIPLES as MODEL_CORNER_TRIPLES
+from kneegui.meshopt.nodes import boundary_node_normals, unique_pairs
 from kneegui.model import ElementBlock, Model
+from kneegui.quality.kernels import (
+    ratio_of_determinants,
+    scaled_corner_determinants,
+)
+from kneegui.quality.thresholds import JACOBIAN_WARN
+from kneegui.topology import CORNER_NODES, ELEMENT_EDGES, SOLID_FACES, boundary_faces
+from kneegui.topology import CORNER_TRIPLES as TOPOLOGY_CORNER_TRIPLES
 
 ProgressCallback = Callable[[float, str], None]
 CancelCallback = Callable[[], bool]
 PositionGuard = Callable[[NDArray[np.int64], NDArray[np.float64]], NDArray[np.bool_]]
 
-#: :data:`kneegui.model.CORNER_TRIPLES` of the smoothed types, as arrays.
+#: :data:`kneegui.topology.CORNER_TRIPLES` of the smoothed types, as arrays.
 CORNER_TRIPLES: dict[str, NDArray[np.int64]] = {
-    etype: np.array(MODEL_CORNER_TRIPLES[etype])
+    etype: np.array(TOPOLOGY_CORNER_TRIPLES[etype])
     for etype in ("hex8", "wedge6", "pyramid5", "tet4", "quad4")
 }
 SMOOTHED_TYPES: tuple[str, ...] = tuple(CORNER_TRIPLES)
-#: Corner nodes of each smoothed type (the connectivity columns the smoother reads).
-CORNER_NODES: dict[str, int] = {"hex8": 8, "wedge6": 6, "pyramid5": 5, "tet4": 4, "quad4": 4}
 
 
 @dataclass(frozen=True)
@@ -193,39 +191,8 @@ def corner_quality(
         Smallest ``det / (|a| |b| |c|)`` over the corners, in [-1, 1]: continuous, used to pull
         inverted corners back.
     """
-    t = CORNER_TRIPLES[etype]
-    pts = np.moveaxis(points, 2, 0)  # (3, m, k): component-major, cheap slicing
-    i = pts[:, :, t[:, 0]]
-    va = pts[:, :, t[:, 1]] - i
-    vb = pts[:, :, t[:, 2]] - i
-    if etype == "quad4":
-        d02 = pts[:, :, 2] - pts[:, :, 0]
-        d13 = pts[:, :, 3] - pts[:, :, 1]
-        n = np.stack(
-            [
-                d02[1] * d13[2] - d02[2] * d13[1],
-                d02[2] * d13[0] - d02[0] * d13[2],
-                d02[0] * d13[1] - d02[1] * d13[0],
-            ]
-        )
-        vc = np.broadcast_to(n[:, :, None], va.shape)
-    else:
-        vc = pts[:, :, t[:, 3]] - i
-    det = (
-        vc[0] * (va[1] * vb[2] - va[2] * vb[1])
-        + vc[1] * (va[2] * vb[0] - va[0] * vb[2])
-        + vc[2] * (va[0] * vb[1] - va[1] * vb[0])
-    )
-    hi = det.max(axis=1)
-    lo = det.min(axis=1)
-    positive = hi > 0
-    jac = np.full(len(hi), -1.0)
-    np.divide(lo, hi, out=jac, where=positive)
-    norm = np.sqrt((va * va).sum(axis=0) * (vb * vb).sum(axis=0) * (vc * vc).sum(axis=0))
-    ratio = np.full(det.shape, -1.0)
-    np.divide(det, norm, out=ratio, where=norm > 0)
-    scaled = ratio.min(axis=1)
-    return jac, scaled
+    dets, ratios = scaled_corner_determinants(np.moveaxis(points, (1, 2), (0, 1)), etype)
+    return ratio_of_determinants(dets), np.stack(ratios, axis=1).min(axis=1)
 
 
 def ordered_quality(jac: NDArray, scaled: NDArray) -> NDArray:
@@ -523,7 +490,7 @@ def smooth_mesh(
     free_nodes: ArrayLike,
     *,
     sliding_nodes: ArrayLike | None = None,
-    target: float | Mapping[str, ArrayLike] = 0.6,
+    target: float | Mapping[str, ArrayLike] = JACOBIAN_WARN,
     options: SmoothOptions | None = None,
     position_guard: PositionGuard | None = None,
     progress: ProgressCallback | None = None,
@@ -548,8 +515,8 @@ def smooth_mesh(
         Quality goal: both stages work on the nodes sharing an element whose corner Jacobian is
         below its goal (stage 1 also on their neighbours). A float applies to every element; a
         mapping gives one goal per element of a block (aligned with its rows; types not in the
-        mapping use 0.6), e.g. ``min(0.6, initial Jacobian)`` so that elements are brought back
-        to their initial quality rather than above it.
+        mapping use the warn level), e.g. ``min(warn, initial Jacobian)`` so that elements are
+        brought back to their initial quality rather than above it.
     options : SmoothOptions, optional
         Sweeps, stage 2 and the acceptance limits (default: :class:`SmoothOptions`).
     position_guard : callable(nodes, coords) -> (k,) bool, optional
@@ -664,7 +631,7 @@ def smooth_mesh(
             axis=1,
         )
         scale = float(np.median(edge_len)) if len(edge_len) else 1.0
-    goal = np.full(len(jac), 0.6)
+    goal = np.full(len(jac), JACOBIAN_WARN)
     for ti, etype in enumerate(nb.types):
         span = slice(nb.offset[ti], nb.offset[ti + 1])
         if isinstance(target, Mapping):
@@ -919,22 +886,6 @@ def _batched_stage(
         tried += n
         improved += int(accept.sum())
     return tried, improved
-
-
-def corner_determinants(
-    points: NDArray[np.float64], etype: str, normal: NDArray[np.float64] | None = None
-) -> NDArray[np.float64]:
-    """(m, T) corner determinants; quads use ``normal`` (m, 3) when given (else their own)."""
-    t = CORNER_TRIPLES[etype]
-    i = points[:, t[:, 0]]
-    va, vb = points[:, t[:, 1]] - i, points[:, t[:, 2]] - i
-    if etype == "quad4":
-        if normal is None:
-            normal = np.cross(points[:, 2] - points[:, 0], points[:, 3] - points[:, 1])
-        vc = np.broadcast_to(normal[:, None, :], va.shape)
-    else:
-        vc = points[:, t[:, 3]] - i
-    return np.einsum("mtk,mtk->mt", np.cross(va, vb), vc)
 
 
 def _inverted_out_of_reach(

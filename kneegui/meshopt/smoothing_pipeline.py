@@ -22,10 +22,11 @@ from kneegui.meshopt.smoother import (
 )
 from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult, compute_quality
+from kneegui.quality.thresholds import JACOBIAN_WARN
 
 
 def smoothing_goals(
-    initial: QualityResult, threshold: float = 0.6, tolerance: float = 0.02
+    initial: QualityResult, threshold: float = JACOBIAN_WARN, tolerance: float = 0.02
 ) -> dict[str, NDArray[np.float64]]:
     """Each element's quality goal for :func:`kneegui.meshopt.smooth_mesh`: ``threshold``, or
     its initial corner Jacobian less ``tolerance`` if that is lower (an element that starts
@@ -42,7 +43,7 @@ def smooth_posed_model(
     fixed_part_ids: Iterable[int] = (),
     initial: Model | QualityResult | None = None,
     *,
-    threshold: float = 0.6,
+    threshold: float = JACOBIAN_WARN,
     tolerance: float = 0.02,
     skin_part_ids: Iterable[int] = (),
     options: SmoothOptions | None = None,

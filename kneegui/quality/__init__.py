@@ -5,6 +5,9 @@
 - :func:`summarize_quality`: worst / mean / std / warn / fail per model, part and role, and the
   change against the initial pose; :func:`format_quality_table` prints it like the paper's Table I.
 - :func:`load_thresholds`: the warn / fail table in ``resources/quality_thresholds.csv``.
+- :func:`volume_change_pct` / :func:`volume_change`: element volume change against the initial
+  pose, with the one rule for a zero initial volume.
+- :mod:`kneegui.quality.kernels`: the per-type kernels and the one corner-determinant code.
 """
 
 from kneegui.quality.metrics import (
@@ -21,7 +24,6 @@ from kneegui.quality.summary import (
     jsonable,
     quality_gate,
     summarize_quality,
-    volume_change,
 )
 from kneegui.quality.thresholds import (
     THRESHOLD_METRICS,
@@ -30,6 +32,7 @@ from kneegui.quality.thresholds import (
     ThresholdsError,
     load_thresholds,
 )
+from kneegui.quality.volume import volume_change, volume_change_pct
 
 __all__ = [
     "MEASURED_TYPES",
@@ -49,4 +52,5 @@ __all__ = [
     "quality_gate",
     "summarize_quality",
     "volume_change",
+    "volume_change_pct",
 ]

@@ -19,6 +19,14 @@ elements) and returns a dict of ``(m,)`` arrays:
 
 The kernels compare cosines / squared lengths across faces and take a single ``arccos`` /
 ``arcsin`` / ``sqrt`` of the worst one per element; that is what makes a million hexes cheap.
+
+This module is also the one implementation of the corner determinants (from
+:data:`kneegui.topology.CORNER_TRIPLES`): :func:`corner_vectors`,
+:func:`corner_determinants_cm` (component-major, as the kernels use it),
+:func:`corner_determinants` / :func:`corner_jacobian` (node-major ``(..., k, 3)`` arrays) and
+:func:`scaled_corner_determinants`. The smoother, the quality optimiser, the relaxation and the
+demo's repair call them; the compiled penalty in :mod:`kneegui.meshopt.quality_kernel` has its
+NumPy reference in :mod:`kneegui.meshopt.quality_optimiser`, tested against it.
 """
 
 from __future__ import annotations
@@ -27,6 +35,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+
+from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, hex_faces_parametric
 
 Vec = NDArray[np.float64]  # (3, m) vectors, component-major
 Arr = NDArray[np.float64]  # (m,)
@@ -61,8 +71,114 @@ def _triple(a: Vec, b: Vec, c: Vec) -> Arr:
     )
 
 
-def _ratio_of_determinants(dets: Sequence[Arr]) -> Arr:
-    """``min/max`` of the sample determinants, ``-1`` where the largest is not positive."""
+def _cos_between(a: Vec, b: Vec) -> Arr:
+    """Cosine of the angle between a and b; 1 where either is zero (no angle defined)."""
+    den = np.sqrt(_sq(a) * _sq(b))
+    out = _dot(a, b)
+    out /= den  # 0/0 -> nan where a vector is zero (the caller runs under errstate)
+    out[den == 0.0] = 1.0
+    return out
+
+
+# ---------------------------------------------------------------------- corner determinants
+#: :data:`kneegui.topology.CORNER_TRIPLES` as index arrays, for the node-major gathers.
+_TRIPLE_ARRAYS: dict[str, NDArray[np.int64]] = {
+    etype: np.array(table, dtype=np.int64) for etype, table in CORNER_TRIPLES.items()
+}
+
+
+def corner_vectors(
+    p: Sequence[Vec], etype: str, normal: Vec | None = None
+) -> list[tuple[Vec, Vec, Vec]]:
+    """The three edge vectors ``(a, b, c)`` of every corner (:data:`CORNER_TRIPLES` order).
+
+    Parameters
+    ----------
+    p : sequence of (3, ...) ndarray of float
+        Node positions, one component-major array per node (any trailing shape).
+    etype : str
+        A type of :data:`kneegui.topology.CORNER_TRIPLES`.
+    normal : (3, ...) ndarray of float, optional
+        Quad shells only: the normal that is each corner's third vector; default the quad's
+        own mean normal ``(p2 - p0) x (p3 - p1)``.
+    """
+    if etype == "quad4" and normal is None:
+        normal = _cross(p[2] - p[0], p[3] - p[1])
+    out = []
+    for i, a, b, c in CORNER_TRIPLES[etype]:
+        vc = normal if c < 0 else p[c] - p[i]
+        out.append((p[a] - p[i], p[b] - p[i], vc))
+    return out
+
+
+def corner_determinants_cm(p: Sequence[Vec], etype: str, normal: Vec | None = None) -> list[Arr]:
+    """Corner determinants ``det(a, b, c)`` of :func:`corner_vectors`, one array per corner.
+
+    This is the one implementation of the corner Jacobian's determinants; the quality
+    kernels, the smoother, the quality optimiser's volumes and the demo's repair use it (the
+    compiled penalty in :mod:`kneegui.meshopt.quality_kernel` is tested against it).
+    """
+    return [_triple(a, b, c) for a, b, c in corner_vectors(p, etype, normal)]
+
+
+def scaled_corner_determinants(p: Sequence[Vec], etype: str) -> tuple[list[Arr], list[Arr]]:
+    """Corner determinants and the same scaled by their edge lengths, one array per corner.
+
+    The scaled value ``det / (|a| |b| |c|)`` lies in [-1, 1] (-1 where an edge has zero
+    length); it varies continuously through inversion, where the ratio of determinants jumps.
+    """
+    dets, scaled = [], []
+    for a, b, c in corner_vectors(p, etype):
+        d = _triple(a, b, c)
+        norm = np.sqrt(_sq(a) * _sq(b) * _sq(c))
+        ratio = np.full(d.shape, -1.0)
+        np.divide(d, norm, out=ratio, where=norm > 0)
+        dets.append(d)
+        scaled.append(ratio)
+    return dets, scaled
+
+
+def corner_determinants(
+    points: NDArray[np.float64], etype: str, normal: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """Corner determinants of elements given node-major: ``(..., k, 3)`` in, ``(..., T)`` out.
+
+    The same corners and edge vectors as :func:`corner_vectors`, laid out node-major for the
+    callers that gather element points (smoother, relaxation, optimiser volumes, demo repair);
+    the triple product is summed by ``einsum``, which rounds differently from the kernels'
+    component-major :func:`corner_determinants_cm` (agreement to 1e-15 relative is tested).
+    The relaxation's and the optimiser's iterations amplify such last-bit differences, so
+    each caller keeps the layout it was tuned and measured with.
+
+    Parameters
+    ----------
+    points : (..., k, 3) ndarray of float
+        Node positions (corner nodes in the model's order).
+    etype : str
+        A type of :data:`kneegui.topology.CORNER_TRIPLES`.
+    normal : (..., 3) ndarray of float, optional
+        Quad shells: the normal to use instead of each quad's own.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    t = _TRIPLE_ARRAYS[etype]
+    base = pts[..., t[:, 0], :]
+    a = pts[..., t[:, 1], :] - base
+    b = pts[..., t[:, 2], :] - base
+    if etype == "quad4":
+        if normal is None:
+            normal = np.cross(pts[..., 2, :] - pts[..., 0, :], pts[..., 3, :] - pts[..., 1, :])
+        c = np.broadcast_to(np.asarray(normal, dtype=np.float64)[..., None, :], a.shape)
+    else:
+        c = pts[..., t[:, 3], :] - base
+    return np.einsum("...tk,...tk->...t", np.cross(a, b), c)
+
+
+def ratio_of_determinants(dets: Sequence[Arr] | NDArray[np.float64]) -> Arr:
+    """``min/max`` of the sample determinants, ``-1`` where the largest is not positive.
+
+    ``dets`` is a sequence of equally shaped arrays (one per sample point) or an array whose
+    *first* axis runs over the sample points.
+    """
     lo = dets[0].copy()
     hi = dets[0].copy()
     for d in dets[1:]:
@@ -74,13 +190,9 @@ def _ratio_of_determinants(dets: Sequence[Arr]) -> Arr:
     return out
 
 
-def _cos_between(a: Vec, b: Vec) -> Arr:
-    """Cosine of the angle between a and b; 1 where either is zero (no angle defined)."""
-    den = np.sqrt(_sq(a) * _sq(b))
-    out = _dot(a, b)
-    out /= den  # 0/0 -> nan where a vector is zero (the caller runs under errstate)
-    out[den == 0.0] = 1.0
-    return out
+def corner_jacobian(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
+    """Corner Jacobian ratio of elements given node-major ``(..., k, 3)``: shape ``(...)``."""
+    return ratio_of_determinants(np.moveaxis(corner_determinants(points, etype), -1, 0))
 
 
 # ---------------------------------------------------------------------- face accumulators
@@ -141,9 +253,19 @@ class _FaceAccumulator:
         }
 
 
+def _result(acc: _FaceAccumulator, corner: Arr, gauss: Arr, volume: Arr) -> dict[str, Arr]:
+    """A kernel's output: the face metrics with the two Jacobians and the volume."""
+    out = acc.finish()
+    out["jacobian_corner"] = corner
+    out["jacobian_gauss"] = gauss
+    out["volume"] = volume
+    return out
+
+
 # ---------------------------------------------------------------------- solids
-#: Hex faces as node cycles.
-HEX_FACES = ((0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (3, 2, 6, 7), (0, 3, 7, 4))
+#: Hex faces as parametric node cycles (:func:`kneegui.topology.hex_faces_parametric`): the
+#: face metrics are unsigned, and these cycles fix their rounding.
+HEX_FACES = hex_faces_parametric()
 
 
 def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -153,18 +275,7 @@ def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     ex = (p[1] - p[0], p[2] - p[3], p[5] - p[4], p[6] - p[7])  # at (eta, zeta) = --, +-, -+, ++
     ey = (p[3] - p[0], p[2] - p[1], p[7] - p[4], p[6] - p[5])  # at (xi, zeta) = --, +-, -+, ++
     ez = (p[4] - p[0], p[5] - p[1], p[7] - p[3], p[6] - p[2])  # at (xi, eta) = --, +-, -+, ++
-    # corner k at (xi, eta, zeta) signs: use the edges through it
-    corner_edges = (
-        (0, 0, 0),  # node 0 (-,-,-): ex[--], ey[--], ez[--]
-        (0, 1, 1),  # node 1 (+,-,-)
-        (1, 1, 3),  # node 2 (+,+,-)
-        (1, 0, 2),  # node 3 (-,+,-)
-        (2, 2, 0),  # node 4 (-,-,+)
-        (2, 3, 1),  # node 5 (+,-,+)
-        (3, 3, 3),  # node 6 (+,+,+)
-        (3, 2, 2),  # node 7 (-,+,+)
-    )
-    corner = [_triple(ex[i], ey[j], ez[k]) for i, j, k in corner_edges]
+    corner = corner_determinants_cm(p, "hex8")
     # Gauss points: bilinear interpolation of each direction's four edges at +-g
     g = GAUSS_2
 
@@ -202,11 +313,7 @@ def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     for face in HEX_FACES:
         edges = [sq[frozenset((face[i], face[(i + 1) % 4]))] for i in range(4)]
         acc.add_quad([p[i] for i in face], edges)
-    out = acc.finish()
-    out["jacobian_corner"] = _ratio_of_determinants(corner)
-    out["jacobian_gauss"] = _ratio_of_determinants(gauss)
-    out["volume"] = volume
-    return out
+    return _result(acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), volume)
 
 
 #: 3-point triangle rule (r, s), weight 1/6 each.
@@ -219,9 +326,7 @@ def wedge6_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     b1, b2 = p[1] - p[0], p[2] - p[0]
     t1, t2 = p[4] - p[3], p[5] - p[3]
     v = (p[3] - p[0], p[4] - p[1], p[5] - p[2])
-    nb = _cross(b1, b2)
-    nt = _cross(t1, t2)
-    corner = [_dot(nb, vi) for vi in v] + [_dot(nt, vi) for vi in v]
+    corner = corner_determinants_cm(p, "wedge6")
     gauss = []
     volume = np.zeros(m)
     for z in (-GAUSS_2, GAUSS_2):
@@ -241,11 +346,7 @@ def wedge6_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_quad([p[0], p[1], p[4], p[3]], (sq01, sq14, sq34, sq03))
     acc.add_quad([p[1], p[2], p[5], p[4]], (sq12, sq25, sq45, sq14))
     acc.add_quad([p[2], p[0], p[3], p[5]], (sq20, sq03, sq53, sq25))
-    out = acc.finish()
-    out["jacobian_corner"] = _ratio_of_determinants(corner)
-    out["jacobian_gauss"] = _ratio_of_determinants(gauss)
-    out["volume"] = volume
-    return out
+    return _result(acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), volume)
 
 
 def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -259,8 +360,7 @@ def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     m = p[0].shape[1]
     base = p[:4]
     e = [base[(i + 1) % 4] - base[i] for i in range(4)]  # e[i] = edge i -> i+1
-    corner = [_triple(e[i], -e[(i + 3) % 4], p[4] - base[i]) for i in range(4)]
-    jac = _ratio_of_determinants(corner)
+    jac = ratio_of_determinants(corner_determinants_cm(p, "pyramid5"))
     centroid = 0.25 * (base[0] + base[1] + base[2] + base[3])
     volume = _dot(_cross(base[2] - base[0], base[3] - base[1]), p[4] - centroid) / 6.0
     sq_base = [_sq(ei) for ei in e]
@@ -269,11 +369,7 @@ def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_quad(list(base), sq_base)
     for i in range(4):
         acc.add_tri((sq_base[i], sq_side[(i + 1) % 4], sq_side[i]))
-    out = acc.finish()
-    out["jacobian_corner"] = jac
-    out["jacobian_gauss"] = jac.copy()
-    out["volume"] = volume
-    return out
+    return _result(acc, jac, jac.copy(), volume)
 
 
 def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -292,11 +388,7 @@ def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_tri((s01, s13, s03))
     acc.add_tri((s12, s23, s13))
     acc.add_tri((s02, s23, s03))
-    out = acc.finish()
-    out["jacobian_corner"] = jac
-    out["jacobian_gauss"] = jac.copy()
-    out["volume"] = volume
-    return out
+    return _result(acc, jac, jac.copy(), volume)
 
 
 # ---------------------------------------------------------------------- shells
@@ -309,7 +401,7 @@ def quad4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     m = p[0].shape[1]
     n = _cross(p[2] - p[0], p[3] - p[1])
     e = [p[(i + 1) % 4] - p[i] for i in range(4)]  # e[i] = edge i -> i+1
-    corner = [_dot(_cross(e[i], -e[(i + 3) % 4]), n) for i in range(4)]
+    corner = corner_determinants_cm(p, "quad4", n)
     # x_xi along edges 0->1 (eta=-1) and 3->2 (eta=+1); x_eta along 0->3 (xi=-1), 1->2 (xi=+1)
     ex_lo, ex_hi = e[0], -e[2]
     ey_lo, ey_hi = -e[3], e[1]
@@ -321,11 +413,9 @@ def quad4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
             gauss.append(_dot(_cross(x_xi, x_eta), n))
     acc = _FaceAccumulator(m)
     acc.add_quad(list(p), [_sq(ei) for ei in e])
-    out = acc.finish()
-    out["jacobian_corner"] = _ratio_of_determinants(corner)
-    out["jacobian_gauss"] = _ratio_of_determinants(gauss)
-    out["volume"] = 0.5 * np.sqrt(_sq(n))
-    return out
+    return _result(
+        acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), 0.5 * np.sqrt(_sq(n))
+    )
 
 
 def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
@@ -336,20 +426,20 @@ def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     jac = np.where(area > 0.0, 1.0, -1.0)
     acc = _FaceAccumulator(m)
     acc.add_tri((_sq(e01), _sq(p[2] - p[1]), _sq(e02)))
-    out = acc.finish()
-    out["jacobian_corner"] = jac
-    out["jacobian_gauss"] = jac.copy()
-    out["volume"] = area
-    return out
+    return _result(acc, jac, jac.copy(), area)
 
 
-#: Kernel and the node columns it reads, per element type. tet10 is measured on its corners.
+#: Kernel and the node columns it reads (the corner nodes), per element type. tet10 is
+#: measured on its corners.
 KERNELS: dict[str, tuple[Callable[[Sequence[Vec]], dict[str, Arr]], tuple[int, ...]]] = {
-    "hex8": (hex8_quality, tuple(range(8))),
-    "wedge6": (wedge6_quality, tuple(range(6))),
-    "pyramid5": (pyramid5_quality, tuple(range(5))),
-    "tet4": (tet4_quality, tuple(range(4))),
-    "tet10": (tet4_quality, tuple(range(4))),
-    "quad4": (quad4_quality, tuple(range(4))),
-    "tri3": (tri3_quality, tuple(range(3))),
+    etype: (kernel, tuple(range(CORNER_NODES[etype])))
+    for etype, kernel in (
+        ("hex8", hex8_quality),
+        ("wedge6", wedge6_quality),
+        ("pyramid5", pyramid5_quality),
+        ("tet4", tet4_quality),
+        ("tet10", tet4_quality),
+        ("quad4", quad4_quality),
+        ("tri3", tri3_quality),
+    )
 }

@@ -20,9 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.model import SOLID_TYPES, Model
+from kneegui.model import Model
 from kneegui.quality.metrics import QualityResult
-from kneegui.quality.thresholds import THRESHOLD_METRICS, Thresholds, load_thresholds
+from kneegui.quality.thresholds import THRESHOLD_METRICS, Thresholds, default_thresholds
+from kneegui.quality.volume import volume_change
+from kneegui.topology import SOLID_TYPES
 
 #: Row labels of the quality table.
 METRIC_LABELS: dict[str, str] = {
@@ -84,43 +86,6 @@ def _aligned_initial(flat: _Flat, initial: _Flat) -> _Flat:
     ):
         raise ValueError("initial quality result does not cover the same elements")
     return initial
-
-
-def volume_change(
-    volume: NDArray[np.float64],
-    initial_volume: NDArray[np.float64],
-    element_ids: NDArray[np.int64] | None = None,
-) -> dict[str, float | int | None]:
-    """Element and total volume change against the initial pose.
-
-    Parameters
-    ----------
-    volume, initial_volume : (m,) ndarray of float
-        Signed element volumes now and in the initial pose (same elements, same order).
-    element_ids : (m,) ndarray of int, optional
-        Ids, to name the element with the largest change.
-
-    Returns
-    -------
-    dict
-        ``max_element_percent`` (signed change of the element whose relative change is largest
-        in magnitude), ``max_element_id``, ``total_percent`` (change of the summed volume).
-    """
-    volume = np.asarray(volume, dtype=float)
-    initial_volume = np.asarray(initial_volume, dtype=float)
-    if len(volume) == 0:
-        return {"max_element_percent": None, "max_element_id": None, "total_percent": None}
-    with np.errstate(divide="ignore", invalid="ignore"):
-        pct = 100.0 * (volume - initial_volume) / np.abs(initial_volume)
-    pct = np.where(np.isfinite(pct), pct, np.inf)
-    k = int(np.argmax(np.abs(pct)))
-    total0 = float(initial_volume.sum())
-    total = 100.0 * (float(volume.sum()) - total0) / abs(total0) if total0 != 0 else math.inf
-    return {
-        "max_element_percent": float(pct[k]),
-        "max_element_id": None if element_ids is None else int(element_ids[k]),
-        "total_percent": total,
-    }
 
 
 def _group(
@@ -196,7 +161,7 @@ def summarize_quality(
         JSON-ready (see the module docstring); part ids are string keys. Non-finite values
         (an infinite aspect ratio) are kept as floats; use :func:`jsonable` before ``json.dumps``.
     """
-    thresholds = thresholds or load_thresholds()
+    thresholds = thresholds or default_thresholds()
     roles = {r: [int(p) for p in pids] for r, pids in (roles or {}).items()}
     flat = _flatten(model, result, etypes)
     init = _aligned_initial(flat, _flatten(model, initial, etypes)) if initial else None
@@ -307,8 +272,7 @@ def format_quality_table(
         for t in titles:
             vc = columns[t].get("volume_change") or {}
             cells.append(
-                f"{_fmt(vc.get('max_element_percent'), digits)} / "
-                f"{_fmt(vc.get('total_percent'), digits)}"
+                f"{_fmt(vc.get('max_element_pct'), digits)} / {_fmt(vc.get('total_pct'), digits)}"
             )
         rows.append(["Volume change % (max elem / total)", *cells])
     rows.append(["Elements", *[str(columns[t]["elements"]) for t in titles]])

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -163,3 +164,14 @@ def load_thresholds(path: str | Path | None = None) -> Thresholds:
     if missing:
         raise ThresholdsError(f"{path}: no default ('*') row for {', '.join(missing)}")
     return Thresholds(default, by_role)
+
+
+@lru_cache(maxsize=1)
+def default_thresholds() -> Thresholds:
+    """The shipped ``resources/quality_thresholds.csv``, read once (callers must not mutate it)."""
+    return load_thresholds()
+
+
+#: The default (``*``) corner-Jacobian warn level of the shipped table: the quality the mesh
+#: improvement (smoother, relaxation goals, degraded-element selection) aims at.
+JACOBIAN_WARN: float = default_thresholds().default["jacobian"].warn

@@ -13,8 +13,8 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.meshopt.topology import boundary_faces
 from kneegui.model import Model
+from kneegui.topology import boundary_faces
 
 
 def surface_triangles(model: Model, part_ids: Iterable[int], shells: bool = True) -> NDArray:

@@ -17,15 +17,18 @@ import numpy as np
 
 from kneegui.geometry.axes import measure_flexion
 from kneegui.io.lsdyna import write_deck
-from kneegui.model import SOLID_TYPES, Model
-from kneegui.quality import compute_quality, jsonable, quality_gate, summarize_quality
+from kneegui.model import Model
+from kneegui.quality import (
+    compute_quality,
+    jsonable,
+    quality_gate,
+    summarize_quality,
+    volume_change_pct,
+)
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE, BoneOverlap
-from kneegui.reposition.repositioner import (
-    SOFT_ROLES,
-    Repositioner,
-    tissue_in_bones_warnings,
-)
+from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
+from kneegui.topology import SOLID_TYPES
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -66,8 +69,7 @@ def _volume_change(
             continue
         v, v0 = result[etype].volume, initial[etype].volume
         block = model.blocks[etype]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pct = np.where(np.abs(v0) > 0, 100.0 * (v - v0) / np.abs(v0), 0.0)
+        pct = volume_change_pct(v, v0)
         if len(pct):
             k = int(np.argmax(np.abs(pct)))
             if abs(pct[k]) > abs(max_pct):

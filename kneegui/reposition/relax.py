@@ -50,16 +50,17 @@ from kneegui.meshopt.quality_optimiser import (
     optimise_quality,
     shortfall_region,
 )
-from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions, corner_determinants
-from kneegui.model import CORNER_TRIPLES, SOLID_TYPES, ElementBlock
+from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
+from kneegui.model import ElementBlock
+from kneegui.quality.kernels import corner_determinants
 from kneegui.reposition.contact import BoneSurfaceDistance
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
+from kneegui.topology import SOLID_FACES
 
 __all__ = [
     "ElasticRelaxation",
     "RelaxOptions",
     "RelaxReport",
-    "corner_tetrahedra",
     "shell_face_tetrahedra",
 ]
 
@@ -68,28 +69,6 @@ ProgressCallback = Callable[[float, str], None]
 #: Where the virtual apex of a shell's tetrahedra sits, from the shell's centroid (0) to the
 #: centroid of the solid it covers (1).
 APEX_DEPTH = 0.3
-
-
-def corner_tetrahedra(
-    blocks: Mapping[str, ElementBlock], masks: Mapping[str, NDArray[np.bool_]] | None = None
-) -> NDArray[np.int64]:
-    """(C, 4) node indices of the corner tetrahedra of the solid elements.
-
-    Parameters
-    ----------
-    blocks : mapping of element type to ElementBlock
-    masks : mapping of element type to (m,) bool, optional
-        Which elements of each block to take (default: all).
-    """
-    out = [np.zeros((0, 4), dtype=np.int64)]
-    for etype in SOLID_TYPES:
-        table = CORNER_TRIPLES[etype]  # the corners of the corner Jacobian
-        block = blocks.get(etype)
-        if block is None or len(block.conn) == 0:
-            continue
-        conn = block.conn if masks is None else block.conn[masks[etype]]
-        out.append(conn[:, np.array(table)].reshape(-1, 4).astype(np.int64))
-    return np.concatenate(out)
 
 
 def shell_face_tetrahedra(
@@ -113,8 +92,6 @@ def shell_face_tetrahedra(
     virtual : (V, n_nodes) sparse matrix
         ``virtual @ coords`` are the virtual nodes' coordinates.
     """
-    from kneegui.model import SOLID_FACES
-
     # every face of the selected solids as a sorted, -1 padded 4-tuple, with its owner
     keys, owners, owner_types = [], [], []
     solid_types = [e for e in SOLID_FACES if e in blocks and e in solid_masks]
@@ -205,7 +182,7 @@ class ElasticRelaxation:
     rest_coords : (N, 3) ndarray
         Initial coordinates (the reference shapes).
     tets : (C, 4) ndarray of int
-        Corner tetrahedra of the soft-tissue solids (:func:`corner_tetrahedra`).
+        Corner tetrahedra of the soft-tissue solids (:func:`kneegui.topology.corner_tetrahedra`).
     free : (F,) ndarray of int
         Nodes the relaxation may move; every other node stays where the pose put it.
     bones : mapping of segment name to BoneSurfaceDistance or (T, 3, 3) ndarray, optional

@@ -46,7 +46,6 @@ from kneegui.reposition.relax import (
     RelaxedRegion,
     RelaxOptions,
     RelaxReport,
-    corner_tetrahedra,
     shell_face_tetrahedra,
 )
 from kneegui.reposition.rigid_blend import (
@@ -64,6 +63,8 @@ from kneegui.reposition.skin_contours import (
 )
 from kneegui.setup.condyles import surface_node_indices
 from kneegui.setup.format import JointSetup
+from kneegui.setup.kinematic_tables import SUPPORTED_FLEXION_DEG
+from kneegui.topology import corner_tetrahedra
 
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.
@@ -71,8 +72,6 @@ BAND_ROLES = ("ligament", "meniscus", "tendon")
 METHODS = ("paper", "blend")
 SEGMENTS = ("femur", "tibia", "patella", "fixed")
 
-#: Supported target flexion range (degrees).
-FLEXION_RANGE = (-10.0, 150.0)
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -598,7 +597,7 @@ class Repositioner:
     def bone_pose(self, flexion_deg: float) -> BonePose:
         """Rigid bone transforms for ``flexion_deg`` (see :func:`solve_bone_pose`), the patella
         seated on the femur (``options.patella_tracking``)."""
-        lo, hi = FLEXION_RANGE
+        lo, hi = SUPPORTED_FLEXION_DEG
         if not np.isfinite(flexion_deg) or not lo <= flexion_deg <= hi:
             raise SetupError(
                 f"target flexion {flexion_deg!r} deg is outside the supported "

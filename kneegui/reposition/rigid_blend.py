@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
-from kneegui.model import ELEMENT_EDGES, ElementBlock
+from kneegui.model import ElementBlock
+from kneegui.topology import ELEMENT_EDGES
 
 _SMALL = 1e-9
 

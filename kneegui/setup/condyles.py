@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 from kneegui.errors import GeometryError, SetupError
 from kneegui.geometry.circle_fit import fit_circle_2d
 from kneegui.geometry.transforms import unit
-from kneegui.model import SHELL_TYPES, SOLID_FACES, Model
+from kneegui.model import Model
+from kneegui.topology import SHELL_TYPES, boundary_faces
 
 
 def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.int64]:
@@ -40,43 +41,13 @@ def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.in
     node of their shell elements (cortical shells sit on the bone surface).
     """
     wanted = np.array(sorted(set(int(p) for p in part_ids)), dtype=np.int64)
-    faces = []
-    nodes = []
-    for etype, block in model.blocks.items():
-        mask = np.isin(block.part_ids, wanted)
-        if not mask.any():
-            continue
-        conn = block.conn[mask]
-        if etype in SHELL_TYPES:
-            nodes.append(conn.reshape(-1))
-        elif etype in SOLID_FACES:
-            for face in SOLID_FACES[etype]:
-                f = conn[:, list(face)]
-                if f.shape[1] == 3:
-                    f = np.column_stack([f, np.full(len(f), -1)])
-                faces.append(f)
-    if faces and model.n_nodes >= 2**31 - 1:  # too many nodes to pack two per int64
-        allf = np.sort(np.concatenate(faces), axis=1)
-        uniq, counts = np.unique(allf, axis=0, return_counts=True)
-        boundary = uniq[counts == 1].reshape(-1)
-        nodes.append(boundary[boundary >= 0])
-    elif faces:
-        # faces as sorted node rows (+1 so the triangle pad is 0), packed into two int64 keys;
-        # a face used by exactly one element has no equal neighbour after a lexicographic sort
-        allf = np.sort(np.concatenate(faces), axis=1) + 1
-        key1 = (allf[:, 0] << 32) | allf[:, 1]
-        key2 = (allf[:, 2] << 32) | allf[:, 3]
-        order = np.lexsort((key2, key1))
-        k1, k2 = key1[order], key2[order]
-        same = (k1[1:] == k1[:-1]) & (k2[1:] == k2[:-1])
-        shared = np.zeros(len(order), dtype=bool)
-        shared[1:] |= same
-        shared[:-1] |= same
-        boundary = allf[order[~shared]].reshape(-1) - 1
-        nodes.append(boundary[boundary >= 0])
-    if not nodes:
-        return np.zeros(0, dtype=np.int64)
-    return np.unique(np.concatenate(nodes))
+    quads, tris = boundary_faces(model.blocks, wanted)
+    nodes = [quads.reshape(-1), tris.reshape(-1)]
+    for etype in SHELL_TYPES:
+        block = model.blocks.get(etype)
+        if block is not None:
+            nodes.append(block.conn[np.isin(block.part_ids, wanted)].reshape(-1))
+    return np.unique(np.concatenate(nodes)).astype(np.int64)
 
 
 def _slab(t: NDArray[np.float64], lo: float, hi: float) -> NDArray[np.bool_]:

@@ -40,6 +40,14 @@ from kneegui.resources import RESOURCES_DIR
 #: The quantities a setup's ``kinematics`` object may choose a table for.
 QUANTITIES: tuple[str, ...] = ("tibial_rotation", "patellar_flexion", "patellar_tilt")
 
+#: Target flexion the engine poses to (degrees): the range the shipped cubic tables sample
+#: (:data:`kneegui.kinematics.build_tables.CUBIC_GRID`); the repositioner refuses targets
+#: outside it.
+SUPPORTED_FLEXION_DEG: tuple[float, float] = (-10.0, 150.0)
+#: Flexion over which the posed demo leg is measured and reported (``python -m
+#: kneegui.kinematics.report``, docs/kinematics.md), inside the supported range: the GUI's
+#: slider offers this range so that every angle it shows has been checked.
+VALIDATED_FLEXION_DEG: tuple[float, float] = (-5.0, 140.0)
 #: Folder of the shipped tables.
 TABLES_DIR = RESOURCES_DIR / "kinematics"
 

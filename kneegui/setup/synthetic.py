@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from kneegui.geometry.transforms import rotation_matrix
 from kneegui.model import ElementBlock, Model, Part
+from kneegui.topology import MIRRORED_NODE_ORDER
 
 PART_TITLES = {
     101: "Femur_Cortical_R",
@@ -211,10 +212,8 @@ def build_synthetic_knee(
     blocks: dict[str, list] = {}
     eid = 1
     for _pts, etype, conn, pid in chunks:
-        if side == "left" and etype == "hex8":
-            conn = conn[:, [0, 3, 2, 1, 4, 7, 6, 5]]
-        if side == "left" and etype == "quad4":
-            conn = conn[:, [0, 3, 2, 1]]
+        if side == "left" and etype in ("hex8", "quad4"):
+            conn = conn[:, list(MIRRORED_NODE_ORDER[etype])]
         ids = np.arange(eid, eid + len(conn))
         eid += len(conn)
         blocks.setdefault(etype, []).append((ids, np.full(len(conn), pid), conn))

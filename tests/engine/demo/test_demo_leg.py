@@ -11,7 +11,7 @@ import pytest
 from kneegui.demo import PARTS, DemoDesign, generate_demo_leg, write_demo
 from kneegui.demo import generator as demo_generator
 from kneegui.demo.generator import MIN_ELEMENTS, build_demo_leg, count_solids
-from kneegui.demo.grid import HEX_FACES, rotate_about_y
+from kneegui.demo.grid import rotate_about_y
 from kneegui.demo.layout import make_layout
 from kneegui.demo.sliding import SLIDING_RADIUS_MM
 from kneegui.errors import KneeguiError
@@ -19,6 +19,7 @@ from kneegui.geometry.axes import compute_joint_axes, measure_flexion
 from kneegui.geometry.circle_fit import fit_circle_2d
 from kneegui.quality import compute_quality
 from kneegui.setup.format import ROLES, load_setup
+from kneegui.topology import SOLID_FACES
 
 #: Requests whose meshes must meet the quality bounds: the smallest accepted request (the coarsest
 #: mesh), requests between it and the default (repaired meshes), the default and finer ones (the
@@ -112,7 +113,7 @@ def test_setup_covers_every_part_and_loads_against_the_model(leg):
 # ------------------------------------------------------------------------- conformity
 def _hex_boundary_faces(model):
     block = model.blocks["hex8"]
-    faces = block.conn[:, HEX_FACES].reshape(-1, 4)
+    faces = block.conn[:, list(SOLID_FACES["hex8"])].reshape(-1, 4)
     owner = np.repeat(np.arange(len(block)), 6)
     key = np.sort(faces, axis=1)
     _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
@@ -147,7 +148,7 @@ def test_coincident_nodes_only_at_the_sliding_interface_and_every_node_is_used(l
 
 def test_shells_lie_on_hex_faces_and_share_their_nodes(leg):
     m = leg.model
-    hex_faces = np.sort(m.blocks["hex8"].conn[:, HEX_FACES].reshape(-1, 4), axis=1)
+    hex_faces = np.sort(m.blocks["hex8"].conn[:, list(SOLID_FACES["hex8"])].reshape(-1, 4), axis=1)
     quads = np.sort(m.blocks["quad4"].conn, axis=1)
     hex_set = {tuple(f) for f in hex_faces.tolist()}
     missing = [q for q in quads.tolist() if tuple(q) not in hex_set]

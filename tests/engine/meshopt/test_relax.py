@@ -7,15 +7,15 @@ import pytest
 
 from kneegui.meshopt.lbfgs import minimize_lbfgs
 from kneegui.meshopt.quality_optimiser import quality_aims
-from kneegui.meshopt.smoother import corner_determinants
 from kneegui.model import ElementBlock
 from kneegui.quality import compute_quality
+from kneegui.quality.kernels import corner_determinants
 from kneegui.reposition.relax import (
     ElasticRelaxation,
     RelaxOptions,
-    corner_tetrahedra,
     shell_face_tetrahedra,
 )
+from kneegui.topology import corner_tetrahedra
 
 
 def hex_block(n: int = 4, size: float = 10.0):

@@ -15,8 +15,8 @@ from kneegui.meshopt import (
     smoothing_free_nodes,
     smoothing_sliding_nodes,
 )
+from kneegui.meshopt.nodes import boundary_node_mask
 from kneegui.meshopt.smoother import edge_ratio
-from kneegui.meshopt.topology import boundary_node_mask
 from kneegui.quality import compute_quality
 
 

@@ -7,8 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from kneegui.model import ElementBlock, split_degenerate_solids
+from kneegui.model import ElementBlock
 from kneegui.quality import QualityEvaluator, compute_quality
+from kneegui.topology import SOLID_FACES, split_degenerate_solids
 
 UNIT_CUBE = np.array(
     [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)],
@@ -176,14 +177,11 @@ def _reference_tri_face(p0, p1, p2):
     return 90 - best, edges.max(0) / edges.min(0)
 
 
-HEX_FACES = ((0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
-
-
 def test_hex_face_metrics_match_literal_definitions():
     pts, blocks = _random_hexes(2000, 0.3, 4)
     q = compute_quality(pts, blocks)["hex8"]
     x = pts.reshape(-1, 8, 3)
-    faces = [_reference_quad_face(*(x[:, i] for i in f)) for f in HEX_FACES]
+    faces = [_reference_quad_face(*(x[:, i] for i in f)) for f in SOLID_FACES["hex8"]]
     warp = np.max([f[0] for f in faces], axis=0)
     skew = np.max([f[1] for f in faces], axis=0)
     aspect = np.max([f[2] for f in faces], axis=0)

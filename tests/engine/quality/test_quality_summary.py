@@ -80,15 +80,15 @@ def test_volume_change_against_initial(block_model):
     q1 = compute_quality(posed.coords, posed.blocks)
     s = summarize_quality(posed, q1, ROLES, initial=q0)
     vc = s["model"]["volume_change"]
-    assert vc["max_element_percent"] == pytest.approx(30.0)
-    assert vc["total_percent"] == pytest.approx(10.0)
+    assert vc["max_element_pct"] == pytest.approx(30.0)
+    assert vc["total_pct"] == pytest.approx(10.0)
     assert vc["max_element_id"] in posed.blocks["hex8"].ids[posed.blocks["hex8"].conn[:, 4] >= 0]
     aspect = s["model"]["aspect"]
     assert aspect["initial_worst"] == pytest.approx(1.0)
     assert aspect["worse_than_initial"] == 9
     assert quality_gate(s) == []
     v = volume_change(np.array([1.0, 2.0]), np.array([1.0, 1.0]), np.array([7, 8]))
-    assert v == {"max_element_percent": 100.0, "max_element_id": 8, "total_percent": 50.0}
+    assert v == {"max_element_pct": 100.0, "max_element_id": 8, "total_pct": 50.0}
 
 
 def test_gate_flags_inverted_and_worse_than_initial(block_model):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kneegui.model import SOLID_TYPES
 from kneegui.quality import compute_quality
 from kneegui.reposition.pipeline import VOLUME_CHANGE_COUNTS_PCT, pose_model
 from kneegui.reposition.repositioner import SOFT_ROLES
+from kneegui.topology import SOLID_TYPES
 
 
 @pytest.mark.parametrize("smooth", [False, True])

@@ -10,7 +10,7 @@ from kneegui.errors import SetupError
 from kneegui.geometry.axes import measure_flexion
 from kneegui.meshopt.chain import ImprovementOptions
 from kneegui.meshopt.foldover import RelaxOptions
-from kneegui.meshopt.topology import boundary_node_mask
+from kneegui.meshopt.nodes import boundary_node_mask
 from kneegui.quality import compute_quality
 from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.checks import inside_closed_surface, penetrating, surface_triangles

@@ -99,8 +99,8 @@ def test_femur_without_shape_raises():
 
 def _reference_surface(model, part_ids):
     """Straightforward surface: faces counted with np.unique(axis=0)."""
-    from kneegui.model import SHELL_TYPES
-    from kneegui.model import SOLID_FACES as _SOLID_FACES
+    from kneegui.topology import SHELL_TYPES
+    from kneegui.topology import SOLID_FACES as _SOLID_FACES
 
     faces, nodes = [], []
     for etype, block in model.blocks.items():
