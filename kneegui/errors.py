@@ -73,3 +73,8 @@ class QualityGateError(KneeguiError):
 
 class Cancelled(KneeguiError):
     """A long operation was cancelled through its callback."""
+
+
+class OutputConflictError(DeckError):
+    """A write would replace a file it must not (an input, another deck's include, a file the
+    user did not name); nothing was written. ``path`` is the first such file."""

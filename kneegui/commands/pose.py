@@ -11,6 +11,7 @@ from pathlib import Path
 from kneegui.errors import SetupError
 from kneegui.io.atomic import atomic_write_text
 from kneegui.io.lsdyna import read_deck, write_deck
+from kneegui.io.output_plan import check_distinct_targets
 from kneegui.reposition import METHODS, Repositioner, RepositionOptions
 from kneegui.reposition.pipeline import pose_model
 from kneegui.setup import load_setup
@@ -41,7 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", help="report JSON path (several angles: _<deg> is added)")
     parser.add_argument("--no-smooth", action="store_true", help="skip mesh smoothing")
     parser.add_argument(
-        "--force", action="store_true", help="write the deck even if it fails the quality gate"
+        "--force",
+        action="store_true",
+        help="write the deck even if it fails the quality gate, and overwrite existing include "
+        "files beside the output (another deck's, maybe)",
     )
     parser.add_argument("--flatten", action="store_true", help="inline every *INCLUDE")
     parser.add_argument("--method", choices=METHODS, help="soft-tissue method (default: best)")
@@ -86,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
                 )
             report_path = Path(args.report) if args.report else None
         jobs.append((deg, out, report_path))
+    check_distinct_targets([p for _, o, r in jobs for p in (o, r) if p])
     status = 0
     for deg, out, report_path in jobs:
         posed = pose_model(repositioner, deg, smooth=not args.no_smooth)
@@ -102,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         written = []
         if posed.passes_gate or args.force:
             t = time.perf_counter()
-            written = write_deck(posed.model, out, flatten=args.flatten)
+            written = write_deck(posed.model, out, flatten=args.flatten, overwrite=args.force)
             report["timings_s"]["write"] = time.perf_counter() - t
         report["written"] = [str(p) for p in written]
         if report_path is not None:
