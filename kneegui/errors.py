@@ -98,3 +98,8 @@ class PlanError(KneeguiError):
             super().__init__(f"{self.path}: {message}")
         else:
             super().__init__(f"{self.path}:{line}: {message}")
+
+
+class OutputConflictError(DeckError):
+    """A write would replace a file it must not (an input, another deck's include, a file the
+    user did not name); nothing was written. ``path`` is the first such file."""

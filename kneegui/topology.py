@@ -38,6 +38,7 @@ class ElementBlock(Protocol):
     conn: NDArray[np.int64]
     part_ids: NDArray[np.int64]
 
+
 # ---------------------------------------------------------------------- element types
 #: Nodes per element, for every element type the model holds.
 NODES_PER_ELEMENT: dict[str, int] = {

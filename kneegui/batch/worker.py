@@ -151,6 +151,9 @@ def _export_posture(repositioner: Any, posture: Posture, context_timings: dict[s
         smooth=posture.options.smooth,
         force=posture.options.force,
         flatten=posture.options.flatten,
+        # the posture's folder is its own (the plan refuses two postures sharing a path): what
+        # is there is an earlier, interrupted write of this same posture
+        overwrite=True,
         context_timings=context_timings,
     )
 

@@ -31,6 +31,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--flatten", action="store_true", help="LS-DYNA: inline every *INCLUDE into one file"
     )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="LS-DYNA: overwrite existing include files beside --out (another deck's, maybe)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         raise DeckError("--flatten applies to LS-DYNA output only")
     model = read_deck(args.model)
     if fmt == "lsdyna":
-        written = write_deck(model, out, flatten=args.flatten)
+        written = write_deck(model, out, flatten=args.flatten, overwrite=args.force)
     elif fmt == "abaqus":
         from kneegui.io.abaqus import write_abaqus
 

@@ -62,6 +62,7 @@ def model_info(model: Model) -> dict[str, Any]:
         "bounding_box": model.bounding_box().tolist(),
         "units_hint": units_hint(model),
         "warnings": list(src.warnings) if src is not None else [],
+        "problems": list(getattr(src, "problems", [])) if src is not None else [],
     }
 
 
@@ -75,15 +76,18 @@ def _quality_summary(model: Model) -> dict[str, Any] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    model = read_deck(args.model)
+    # what LS-DYNA would refuse (no nodes or elements, undefined parts, element ids used twice)
+    # is listed under "problems" instead of stopping the listing; the exit code is then 2
+    model = read_deck(args.model, check_references=False)
     info = model_info(model)
-    if not args.no_quality:
+    status = 2 if info["problems"] else 0
+    if not args.no_quality and model.n_elements:
         q = _quality_summary(model)
         if q is not None:
             info["quality"] = q
     if args.json:
         print(json.dumps(info, indent=2))
-        return 0
+        return status
     print(
         f"files     : {len(info['files'])} ({', '.join(info['files'][:3])}"
         f"{', ...' if len(info['files']) > 3 else ''})"
@@ -113,4 +117,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  inverted elements: {s}")
     for w in info["warnings"]:
         print(f"warning: {w}")
-    return 0
+    if info["problems"]:
+        print("problems (LS-DYNA refuses this deck; convert and pose stop at the first):")
+        for p in info["problems"]:
+            print(f"  {p}")
+    return status

@@ -11,6 +11,7 @@ from pathlib import Path
 from kneegui.errors import SetupError
 from kneegui.io.atomic import atomic_write_text
 from kneegui.io.lsdyna import read_deck
+from kneegui.io.output_plan import check_distinct_targets
 from kneegui.reposition import METHODS, Repositioner, RepositionOptions
 from kneegui.reposition.pipeline import angle_tag, export_pose
 from kneegui.setup import load_setup
@@ -41,7 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", help="report JSON path (several angles: _<deg> is added)")
     parser.add_argument("--no-smooth", action="store_true", help="skip mesh smoothing")
     parser.add_argument(
-        "--force", action="store_true", help="write the deck even if it fails the quality gate"
+        "--force",
+        action="store_true",
+        help="write the deck even if it fails the quality gate, and overwrite existing include "
+        "files beside the output (another deck's, maybe)",
     )
     parser.add_argument("--flatten", action="store_true", help="inline every *INCLUDE")
     parser.add_argument("--method", choices=METHODS, help="soft-tissue method (default: best)")
@@ -82,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
                 )
             report_path = Path(args.report) if args.report else None
         jobs.append((deg, out, report_path))
+    check_distinct_targets([p for _, o, r in jobs for p in (o, r) if p])
     context_timings = {
         "read": t_read,
         "setup": t_setup,
@@ -98,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
             smooth=not args.no_smooth,
             force=args.force,
             flatten=args.flatten,
+            overwrite=args.force,
             context_timings=context_timings,
         )
         report = posed.report

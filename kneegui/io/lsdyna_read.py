@@ -86,6 +86,8 @@ class DeckSource:
     node_col: NDArray[np.int32]  # column where the x field starts (fixed format)
     node_width: NDArray[np.int32]  # field width; 0 = free-format (comma) line
     warnings: list[str] = field(default_factory=list)
+    #: what LS-DYNA would refuse (read with ``check_references=False``; else the first raises)
+    problems: list[str] = field(default_factory=list)
 
     @property
     def main(self) -> DeckFile:
@@ -107,7 +109,16 @@ _BEAM_EXTRA = {
     "WARPAGE": 1,
     "ELBOW": 1,
 }
-_PART_EXTRA = {"CONTACT": 1, "PRINT": 1, "ATTACHMENT_NODES": 1, "INERTIA": 3}
+#: Cards each *PART option adds after the PID card (LS-DYNA manual, *PART); INERTIA adds a
+#: fourth card when its IRCS field (card 3, field 5) is 1.
+_PART_EXTRA = {"INERTIA": 3, "REPOSITION": 1, "CONTACT": 1, "PRINT": 1, "ATTACHMENT_NODES": 1}
+
+
+def _part_options(name: str) -> list[str] | None:
+    """The options of a ``*PART...`` keyword name, or None when one is not in ``_PART_EXTRA``."""
+    rest = name[5:].replace("ATTACHMENT_NODES", "ATTACHMENT-NODES")
+    opts = [o.replace("-", "_") for o in rest.split("_") if o]
+    return opts if all(o in _PART_EXTRA for o in opts) else None
 
 
 @dataclass
@@ -117,11 +128,14 @@ class _Block:
     fmt: str
     line_index: int  # index of the keyword line
     data_lines: NDArray[np.int64]  # indices of the non-comment, non-blank data lines
+    card_lines: NDArray[np.int64]  # the same with blank lines (blank cards)
+    decoration: str = ""  # text after the keyword name and format modifier, kept verbatim
 
 
 class _DeckReader:
-    def __init__(self, main_path: Path):
+    def __init__(self, main_path: Path, strict: bool = True):
         self.main_path = main_path
+        self.strict = strict
         self.main_dir = main_path.parent
         self.files: list[DeckFile] = []
         self.include_dirs: list[Path] = []
@@ -137,6 +151,7 @@ class _DeckReader:
         self.part_where: dict[int, tuple[int, int]] = {}
         self.node_sets: list[tuple[int, str, NDArray[np.int64], int, int]] = []
         self.part_sets: list[tuple[int, str, NDArray[np.int64], int, int]] = []
+        self.unread_parts: list[str] = []  # keywords that may define parts kneegui does not read
 
     # ------------------------------------------------------------------ files
     def read_file(self, path: Path, rel: Path, stack: tuple[Path, ...], ref: tuple | None) -> int:
@@ -214,7 +229,8 @@ class _DeckReader:
                 if not self._line(f, i).strip():
                     is_blank[i] = True
         kw_lines = np.flatnonzero(is_kw)
-        data_mask = ~is_kw & ~is_comment & ~is_blank
+        card_mask = ~is_kw & ~is_comment
+        data_mask = card_mask & ~is_blank
         if len(kw_lines) == 0 or np.any(data_mask[: kw_lines[0]]):
             first_data = int(np.flatnonzero(data_mask)[0]) if data_mask.any() else 0
             if data_mask.any():
@@ -225,24 +241,20 @@ class _DeckReader:
             name, fmt, options = self._keyword(header)
             if not _KEYWORD_NAME.match(name):
                 raise self._fail(fi, kw_line, f"{header.strip()[:40]!r} is not a keyword name")
-            self._check_keyword_options(fi, kw_line, name, options)
+            self._check_keyword_family(fi, kw_line, name)
             lo, hi = kw_line + 1, int(bounds[k + 1])
             data_lines = lo + np.flatnonzero(data_mask[lo:hi])
-            block = _Block(fi, name, fmt, kw_line, data_lines)
+            # a blank line is a card (all fields default), as LS-DYNA counts cards
+            card_lines = lo + np.flatnonzero(card_mask[lo:hi])
+            decoration = "" if name == "KEYWORD" else options.strip()
+            block = _Block(fi, name, fmt, kw_line, data_lines, card_lines, decoration)
             if name == "END":
                 f.end_offset = int(f.line_starts[kw_line])
                 break
             self._dispatch(block, options, stack)
 
-    def _check_keyword_options(self, fi: int, line: int, name: str, options: str) -> None:
-        """Refuse text after a keyword name that is not an option; warn on unknown families."""
-        rest = options.strip()
-        if rest[:1] in ("+", "-", "%"):
-            rest = rest[1:].strip()
-        if rest and not rest.startswith("$") and name != "KEYWORD":
-            tokens = rest.split("$", 1)[0].split()
-            if not all(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*=\S*", t) for t in tokens):
-                raise self._fail(fi, line, f"unexpected text after *{name}: {rest[:40]!r}")
+    def _check_keyword_family(self, fi: int, line: int, name: str) -> None:
+        """Warn on a keyword outside the LS-DYNA families (it is kept verbatim)."""
         family = name.split("_", 1)[0]
         if family not in _KEYWORD_FAMILIES:
             self.warnings.append(
@@ -251,24 +263,24 @@ class _DeckReader:
             )
 
     def _keyword(self, header: str) -> tuple[str, str, str]:
+        """Name, card format and the rest of a keyword line.
+
+        The name is the first word after ``*``; a ``+`` (long), ``-`` (standard) or ``%`` (I10)
+        at its end or as the next word sets the card format of this keyword. What follows is
+        text LS-DYNA does not read as part of the name (``*KEYWORD`` options, or a label such as
+        LS-PrePost's ``(ten nodes format)``): it is returned as is and written back verbatim.
+        """
         text = header.rstrip()
-        # tolerate comments after the keyword ("*NODE $ ...")
         token, _, options = text[1:].partition(" ")
         token = token.strip()
         fmt = self.global_fmt
-        if token.endswith("+"):
-            token, fmt = token[:-1], LONG
-        elif token.endswith("%"):
-            token, fmt = token[:-1], I10
-        elif token.endswith("-"):
-            token, fmt = token[:-1], STANDARD
-        opt = options.strip()
-        if opt.startswith("+"):
-            fmt = LONG
-        elif opt.startswith("%"):
-            fmt = I10
-        elif opt.startswith("-"):
-            fmt = STANDARD
+        modifiers = {"+": LONG, "%": I10, "-": STANDARD}
+        if token[-1:] in modifiers:
+            token, fmt = token[:-1], modifiers[token[-1]]
+        else:
+            first, _, after = options.strip().partition(" ")
+            if first in modifiers:
+                fmt, options = modifiers[first], after
         return token.upper(), fmt, options
 
     def _dispatch(self, b: _Block, options: str, stack: tuple[Path, ...]) -> None:
@@ -285,8 +297,12 @@ class _DeckReader:
             self._parse_nodes(b)
         elif name.startswith("ELEMENT_"):
             self._parse_elements(b)
-        elif name == "PART" or (name.startswith("PART_") and name[5:] in _PART_EXTRA):
+        elif name == "PART" or (name.startswith("PART_") and _part_options(name) is not None):
             self._parse_parts(b)
+        elif name.startswith("PART_") and not name.startswith("PART_SENSOR"):
+            # a part kneegui cannot read defines ids it does not know: undefined part ids in
+            # elements are then listed as warnings, not refused
+            self.unread_parts.append(f"{self.files[b.file].path}:{b.line_index + 1}: *{name}")
         elif name in ("SET_NODE", "SET_NODE_LIST", "SET_NODE_TITLE", "SET_NODE_LIST_TITLE"):
             self._parse_set(b, self.node_sets)
         elif name in ("SET_PART", "SET_PART_LIST", "SET_PART_TITLE", "SET_PART_LIST_TITLE"):
@@ -300,12 +316,26 @@ class _DeckReader:
         elif name == "INCLUDE":
             self._parse_include(b, stack)
         elif name.startswith("INCLUDE"):
+            self.unread_parts.append(f"{self.files[b.file].path}:{b.line_index + 1}: *{name}")
             self.warnings.append(
                 f"{self.files[b.file].path}:{b.line_index + 1}: *{name} is kept verbatim; "
                 "the files it names are not read"
             )
 
     # ------------------------------------------------------------------ cards
+    def _card_groups(self, b: _Block, per: int) -> NDArray[np.int64]:
+        """Card lines of a keyword with ``per`` cards per item, blank cards included.
+
+        Blank lines after the last data line end the block unless they complete its last item
+        (a blank last card, e.g. a blank thickness card)."""
+        lines = b.card_lines
+        if per == 1 or len(b.data_lines) == 0:
+            return b.data_lines
+        n_trailing = int(np.count_nonzero(lines > b.data_lines[-1]))
+        keep = len(lines) - n_trailing
+        missing = (-keep) % per
+        return lines[: keep + (missing if missing <= n_trailing else 0)]
+
     def _card_texts(self, b: _Block) -> list[bytes]:
         f = self.files[b.file]
         return [self._line(f, i) for i in b.data_lines.tolist()]
@@ -451,7 +481,9 @@ class _DeckReader:
         suffix = name[len(base) + 1 :] if base and name != base else ""
         opts = [o for o in suffix.split("_") if o]
         f = self.files[b.file]
-        if base == "ELEMENT_SOLID" and opts in ([], ["ORTHO"]):
+        if base == "ELEMENT_SOLID" and opts in ([], ["ORTHO"], ["TET4TOTET10"], ["H8TOH20"]):
+            # _TET4TOTET10 / _H8TOH20 use the *ELEMENT_SOLID cards; LS-DYNA makes the mid-edge
+            # nodes from the corners at run time, so moving the corners is all a pose needs
             self._parse_solids(b, extra_cards=2 if opts == ["ORTHO"] else 0)
         elif base == "ELEMENT_SHELL" and all(o in _SHELL_EXTRA for o in opts):
             extra = int(any(o in ("THICKNESS", "BETA", "MCID") for o in opts))
@@ -468,8 +500,11 @@ class _DeckReader:
             )
 
     def _parse_simple(self, b: _Block, cards: int, n_fields: int, sink: list) -> None:
-        """Elements whose first card is EID PID N1..N(n_fields-2) followed by ``cards-1`` cards."""
-        lines = b.data_lines
+        """Elements whose first card is EID PID N1..N(n_fields-2) followed by ``cards-1`` cards.
+
+        With several cards per element a blank line is a card (e.g. a blank thickness card).
+        """
+        lines = self._card_groups(b, cards)
         if len(lines) % cards:
             raise self._fail(
                 b.file, lines[-1], f"*{b.keyword}: incomplete element (expected {cards} cards each)"
@@ -518,15 +553,17 @@ class _DeckReader:
         return out
 
     def _parse_solids(self, b: _Block, extra_cards: int) -> None:
-        lines = b.data_lines
-        if len(lines) == 0:
+        if len(b.data_lines) == 0:
             return
         w = self._int_width(b.fmt)
         f = self.files[b.file]
-        # two-card layout: the first card holds EID and PID only
-        head = self._int_table(b, lines[:1], [w] * 10)
-        two_card = bool(np.all(head[0, 2:] == 0))
+        # two-card layout: the first card holds EID and PID only; LS-PrePost labels it
+        # "*ELEMENT_SOLID (ten nodes format)"
+        head = self._int_table(b, b.data_lines[:1], [w] * 10)
+        two_card = bool(np.all(head[0, 2:] == 0)) or "TEN NODES" in b.decoration.upper()
         per = (2 if two_card else 1) + extra_cards
+        # one card per element: blank lines are skipped; several: a blank line is a card
+        lines = self._card_groups(b, per)
         if len(lines) % per:
             raise self._fail(b.file, lines[-1], f"*{b.keyword}: incomplete element card group")
         first = lines[::per]
@@ -543,25 +580,28 @@ class _DeckReader:
 
     # ------------------------------------------------------------------ *PART
     def _parse_parts(self, b: _Block) -> None:
+        """``*PART`` and its options; the heading card may be blank and still counts."""
         f = self.files[b.file]
-        opts = b.keyword[5:].split("_") if b.keyword != "PART" else []
-        lines = b.data_lines.tolist()
+        opts = _part_options(b.keyword) or []
+        lines = b.card_lines.tolist()
+        last_data = int(b.data_lines[-1]) if len(b.data_lines) else -1
         w = 20 if b.fmt == LONG else 10
         k = 0
         while k < len(lines):
+            if lines[k] > last_data:
+                break  # blank lines after the last part
             if k + 1 >= len(lines):
-                raise self._fail(b.file, lines[k], "*PART: title card without a PID card")
+                raise self._fail(b.file, lines[k], "*PART: heading card without a PID card")
             title = self._line(f, lines[k]).decode("latin-1").rstrip()
             fields = self._card_fields(b, lines[k + 1], [w] * 8)
             pid = self._int(b, lines[k + 1], fields[0], "part id (PID)")
             secid = self._int(b, lines[k + 1], fields[1], "SECID")
             mid = self._int(b, lines[k + 1], fields[2], "MID")
-            n_cards = 2
-            for o in opts:
-                n_cards += _PART_EXTRA.get(o, 0)
-            if "INERTIA" in opts and k + 4 < len(lines):
-                ircs = self._card_fields(b, lines[k + 4], [w] * 8)
-                if len(ircs) > 6 and ircs[6].strip() not in ("", "0"):
+            n_cards = 2 + sum(_PART_EXTRA[o] for o in opts)
+            if "INERTIA" in opts and k + 2 < len(lines):
+                # card 3: XC YC ZC TM IRCS NODEID; IRCS = 1 adds the local-axes card
+                card3 = self._card_fields(b, lines[k + 2], [w] * 8)
+                if self._float(b, lines[k + 2], card3[4], "IRCS") == 1:
                     n_cards += 1
             if pid <= 0:
                 raise self._fail(b.file, lines[k + 1], f"part id must be positive, got {pid}")
@@ -581,7 +621,7 @@ class _DeckReader:
     # ------------------------------------------------------------------ *SET_...
     def _parse_set(self, b: _Block, sink: list) -> None:
         f = self.files[b.file]
-        lines = b.data_lines.tolist()
+        lines = b.card_lines.tolist()  # the title card may be blank
         if not lines:
             raise self._fail(b.file, b.line_index, f"*{b.keyword} without a set id card")
         k = 0
@@ -594,7 +634,10 @@ class _DeckReader:
         w = 20 if b.fmt == LONG else 10
         head = self._card_fields(b, lines[k], [w] * 6)
         sid = self._int(b, lines[k], head[0], "set id (SID)")
-        rest = np.array(lines[k + 1 :], dtype=np.int64)
+        if sid <= 0:
+            raise self._fail(b.file, lines[k], f"set id must be positive, got {sid}")
+        # blank id cards are eight zeros: skipped like zero ids
+        rest = b.data_lines[b.data_lines > lines[k]]
         if len(rest):
             vals = self._int_table(b, rest, [w] * 8)
             ids = vals[vals != 0]
@@ -781,6 +824,9 @@ class _DeckReader:
         part_sets = {
             sid: PartSet(sid, title, pids) for sid, title, pids, _fi, _line in self.part_sets
         }
+        problems = self._reference_problems(len(ids))
+        if problems and self.strict:
+            raise problems[0]
         source = DeckSource(
             files=self.files,
             coords_read=xyz.copy(),
@@ -790,9 +836,69 @@ class _DeckReader:
             node_col=ncol,
             node_width=nwidth,
             warnings=self.warnings,
+            problems=[p.location_message() for p in problems],
         )
         source.coords_read.flags.writeable = False
         return Model(ids, xyz, element_blocks, self.parts, node_sets, part_sets, source)
+
+    def _reference_problems(self, n_nodes: int) -> list[DeckError]:
+        """What LS-DYNA refuses in a deck whose cards are each fine, first found first.
+
+        An empty deck, two elements of one kind (solid, shell, beam, discrete) with the same id,
+        an element whose part is not defined.
+        """
+        problems: list[DeckError] = []
+        kinds = (
+            ("solid", self.solid_chunks),
+            ("shell", self.shell_chunks),
+            ("beam", self.beam_chunks),
+            ("discrete", self.discrete_chunks),
+        )
+        if n_nodes == 0 and not any(chunks for _, chunks in kinds):
+            problems.append(DeckError("the deck defines no nodes and no elements", self.main_path))
+
+        def where(chunks: list, row: int) -> tuple[Path, int]:
+            for chunk in chunks:
+                if row < len(chunk[0]):
+                    fobj = self.files[chunk[3]]
+                    return fobj.path, fobj.line_number(chunk[4][row])
+                row -= len(chunk[0])
+            raise IndexError(row)  # pragma: no cover - rows come from the chunks
+
+        for kind, chunks in kinds:
+            if not chunks:
+                continue
+            eids = np.concatenate([c[0] for c in chunks])
+            order = np.argsort(eids, kind="stable")
+            dup = np.flatnonzero(eids[order][1:] == eids[order][:-1])
+            if len(dup):
+                first, second = int(order[dup[0]]), int(order[dup[0] + 1])
+                (p1, l1), (p2, l2) = where(chunks, first), where(chunks, second)
+                problems.append(
+                    DeckError(
+                        f"{kind} element id {eids[second]} is used twice (first at {p1}:{l1})",
+                        p2,
+                        l2,
+                    )
+                )
+            pids = np.concatenate([c[1] for c in chunks])
+            undefined = ~np.isin(
+                pids, np.fromiter(self.parts, dtype=np.int64, count=len(self.parts))
+            )
+            if np.any(undefined):
+                row = int(np.flatnonzero(undefined)[0])
+                path, line = where(chunks, row)
+                message = (
+                    f"{kind} element {eids[row]} refers to part {pids[row]}, which is not defined"
+                )
+                if self.unread_parts:
+                    self.warnings.append(
+                        f"{path}:{line}: {message} here; it may be in {self.unread_parts[0]}, "
+                        "which kneegui does not read"
+                    )
+                else:
+                    problems.append(DeckError(message, path, line))
+        return problems
 
     def _check_pids(self, pids: NDArray[np.int64], chunk: tuple) -> None:
         if np.any(pids <= 0):
@@ -805,13 +911,18 @@ class _DeckReader:
             )
 
 
-def read_deck(path: str | os.PathLike[str]) -> Model:
+def read_deck(path: str | os.PathLike[str], *, check_references: bool = True) -> Model:
     """Read an LS-DYNA keyword deck (with its ``*INCLUDE`` files) into a model.
 
     Parameters
     ----------
     path : str or PathLike
         The main deck file (``.k``, ``.key``, ``.dyn``, ...).
+    check_references : bool
+        Refuse what LS-DYNA refuses in a deck whose cards are each readable: no nodes and no
+        elements, an element id used twice within solids (shells, beams, discretes), an element
+        whose part is not defined. ``False`` lists them in ``model.source.problems`` instead
+        (``kneegui info``).
 
     Returns
     -------
@@ -827,6 +938,6 @@ def read_deck(path: str | os.PathLike[str]) -> Model:
     main = Path(path)
     if not main.exists():
         raise DeckError("file not found", main, None)
-    reader = _DeckReader(main)
+    reader = _DeckReader(main, strict=check_references)
     reader.read_file(main, Path(main.name), (), None)
     return reader.build()

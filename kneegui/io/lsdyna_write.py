@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.errors import DeckError
+from kneegui.errors import DeckError, OutputConflictError
 from kneegui.io.atomic import atomic_write_many
 from kneegui.io.fields import FieldError, format_fixed_width, format_free_float
 from kneegui.io.lsdyna_read import DeckFile, DeckSource
+from kneegui.io.output_plan import plan_writes
 from kneegui.model import Model
 
 _SPACE = 32
@@ -139,6 +140,7 @@ def write_deck(
     out_path: str | os.PathLike[str],
     *,
     flatten: bool = False,
+    overwrite: bool = False,
     allow_overwrite_input: bool = False,
 ) -> list[Path]:
     """Write a model read by :func:`kneegui.io.lsdyna.read_deck` back out, losslessly.
@@ -152,20 +154,27 @@ def write_deck(
         layout as in the input (unless ``flatten``).
     flatten : bool
         Write one self-contained file with every include inlined.
+    overwrite : bool
+        Replace existing files other than ``out_path`` (include files another deck written in
+        the same folder may refer to) when their bytes would change; without it such a write is
+        refused (:mod:`kneegui.io.output_plan`).
     allow_overwrite_input : bool
         Permit an output path that is one of the input files (off by default).
 
     Returns
     -------
     list of Path
-        The files written.
+        The deck's files (an existing include that already held the same bytes is left
+        untouched and listed).
 
     Raises
     ------
     DeckError
         If the model cannot be written losslessly (different node count, non-finite coordinate,
         a value that does not fit its field, an include outside the deck folder with changed
-        nodes, an output that would overwrite the input). Nothing is written then.
+        nodes); :class:`~kneegui.errors.OutputConflictError` (a ``DeckError``) if it would
+        overwrite an input or, without ``overwrite``, change an existing file other than
+        ``out_path``. Nothing is written then.
     """
     src = model.source
     if not isinstance(src, DeckSource):
@@ -208,15 +217,24 @@ def write_deck(
                 continue
             else:
                 target = main_dir / f.rel_path
-            outputs[target] = _apply_edits(data, edits)
-    if not allow_overwrite_input:
-        inputs = {f.path.resolve() for f in src.files}
-        for target in outputs:
-            if target.resolve() in inputs:
-                raise DeckError(
-                    f"refusing to overwrite the input deck {target}; choose another output path"
+            text = _apply_edits(data, edits)
+            if target in outputs and outputs[target] != text:
+                # an include named like the output (or two includes on one path)
+                raise OutputConflictError(
+                    f"two files of the deck would be written to {target}; choose another output "
+                    "name or use --flatten",
+                    target,
                 )
-    return atomic_write_many(outputs)
+            outputs[target] = text
+    todo = plan_writes(
+        outputs,
+        out_main,
+        inputs=[f.path for f in src.files],
+        overwrite=overwrite,
+        allow_overwrite_input=allow_overwrite_input,
+    )
+    atomic_write_many(todo)
+    return list(outputs)
 
 
 # ---------------------------------------------------------------------------------- fresh decks

@@ -163,6 +163,8 @@ class PatellaSeating:
             if high - low <= LIFT_PRECISION or worst_high >= -LIFT_PRECISION:
                 break
             middle = high - weight_high * (high - low) / (weight_high - weight_low)
+            if not np.isfinite(middle):  # a side with nothing liftable weighs -inf: bisect
+                middle = 0.5 * (low + high)
             middle = min(max(middle, low + 0.05 * (high - low)), high - 0.05 * (high - low))
             worst_middle, _ = measure(middle)
             if worst_middle <= SEATING_TOLERANCE:

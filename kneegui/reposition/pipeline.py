@@ -224,6 +224,7 @@ def export_pose(
     smooth: bool = True,
     force: bool = False,
     flatten: bool = False,
+    overwrite: bool = False,
     context_timings: dict[str, float] | None = None,
 ) -> PosedModel:
     """Pose one angle with :func:`pose_model` and write the posed deck: the export step that
@@ -245,6 +246,9 @@ def export_pose(
         Write the deck even when the pose fails the quality gate.
     flatten : bool
         Inline every ``*INCLUDE`` into one file.
+    overwrite : bool
+        Replace existing files beside ``out`` that the write would otherwise refuse to touch
+        (:mod:`kneegui.io.output_plan`: another deck's includes, files the user did not name).
     context_timings : dict, optional
         Timings of the caller's stages (read, setup, precompute) added to the report's.
 
@@ -261,7 +265,7 @@ def export_pose(
     written = []
     if posed.passes_gate or force:
         t = time.perf_counter()
-        written = write_deck(posed.model, out, flatten=flatten)
+        written = write_deck(posed.model, out, flatten=flatten, overwrite=overwrite)
         report["timings_s"]["write"] = time.perf_counter() - t
     report["written"] = [str(p) for p in written]
     return posed

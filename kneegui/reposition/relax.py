@@ -31,7 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from kneegui.errors import Cancelled
+from kneegui.errors import Cancelled, GeometryError
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.meshopt.chain import ImprovementOptions, improve_region
 from kneegui.meshopt.foldover import (
@@ -124,6 +124,8 @@ def shell_face_tetrahedra(
     face_type = np.concatenate(owner_types)
     s_keys = np.concatenate(shell_keys)
     s_conn = np.concatenate(shell_conn)
+    if len(s_keys) == 0:  # shell roles present but without shells (e.g. no skin part)
+        return empty
     # match shells to solid faces by their sorted node tuples
     both = np.concatenate([face_keys, s_keys])
     _, inverse = np.unique(both, axis=0, return_inverse=True)
@@ -677,16 +679,23 @@ class ElasticRelaxation:
                 return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
             return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
 
-        return optimise_quality(
-            x,
-            self.blocks,
-            free,
-            self.aims,
-            constraints=constraints,
-            options=options,
-            progress=progress,
-            cancel=cancel,
-        )
+        try:
+            return optimise_quality(
+                x,
+                self.blocks,
+                free,
+                self.aims,
+                constraints=constraints,
+                options=options,
+                progress=progress,
+                cancel=cancel,
+            )
+        except ValueError:  # an element stayed inverted or flat: the input has one (issue #22)
+            raise GeometryError(
+                "the relaxation cannot untangle the soft tissue it moves: an element there is "
+                "inverted or flat (coincident nodes or a collapsed element in the deck? "
+                "'kneegui quality' lists them)"
+            ) from None
 
 
 class RelaxedRegion:

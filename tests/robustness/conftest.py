@@ -6,13 +6,12 @@ import sys
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    module = sys.modules.get("test_deck_fuzz")
-    counts = getattr(module, "FUZZ_COUNTS", None)
-    if not counts:
-        for name, mod in sys.modules.items():
-            if name.endswith("test_deck_fuzz") and hasattr(mod, "FUZZ_COUNTS"):
-                counts = mod.FUZZ_COUNTS
-                break
+    # every fuzz module keeps a FUZZ_COUNTS dict: the reader's and the whole path's
+    counts: dict[str, int] = {}
+    for name, module in list(sys.modules.items()):
+        if name.rsplit(".", 1)[-1].endswith("_fuzz") and hasattr(module, "FUZZ_COUNTS"):
+            for key, value in module.FUZZ_COUNTS.items():
+                counts[key] = counts.get(key, 0) + value
     if counts:
         total = sum(counts.values())
         parts = ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))

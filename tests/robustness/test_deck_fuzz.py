@@ -203,12 +203,9 @@ def test_whole_deck_mutations(tmp_path, mutations):
 @pytest.mark.parametrize(
     "text",
     [
-        "",  # empty file
-        "*KEYWORD\n",  # no data at all
-        "*KEYWORD\n*NODE\n",  # empty block
-        "*KEYWORD\n*PART\nlonely\n         9         1         1\n*END\n",  # part without elements
         BASE.replace("*END\n", ""),  # missing *END
         BASE + "\x80\xff non-UTF-8 bytes after END\n",
+        BASE.replace("*END\n", "*PART\nlonely\n         9         1         1\n*END\n"),
     ],
 )
 def test_accepted_degenerate_decks(tmp_path, text):
@@ -216,7 +213,25 @@ def test_accepted_degenerate_decks(tmp_path, text):
     path = tmp_path / "d.k"
     path.write_bytes(text.encode("latin-1"))
     model = read_deck(path)
-    assert model.n_nodes in (0, 8)
+    assert model.n_nodes == 8
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",  # empty file
+        "*KEYWORD\n",  # no data at all
+        "*KEYWORD\n*NODE\n",  # empty block
+        "*KEYWORD\n*PART\nlonely\n         9         1         1\n*END\n",  # a part only
+    ],
+)
+def test_decks_without_nodes_or_elements_are_refused(tmp_path, text):
+    count("refused empty decks")
+    path = tmp_path / "d.k"
+    path.write_bytes(text.encode("latin-1"))
+    with pytest.raises(DeckError, match="no nodes and no elements") as err:
+        read_deck(path)
+    assert err.value.path == path
 
 
 def test_non_utf8_title_is_kept_byte_for_byte(tmp_path):

@@ -29,6 +29,11 @@ def fixed_nodes(coords, start=1, idw=8, w=16) -> str:
     )
 
 
+def part_cards(*pids: int) -> str:
+    """``*PART`` cards for the given ids (LS-DYNA refuses elements of undefined parts)."""
+    return "*PART\n" + "".join(f"part {p}\n{p:10d}{1:10d}{1:10d}\n" for p in pids)
+
+
 def assert_roundtrip_identical(deck: Path, tmp_path: Path) -> None:
     model = read_deck(deck)
     out = tmp_path / "out" / deck.name
@@ -69,7 +74,9 @@ def test_crlf_and_missing_final_newline_roundtrip(tmp_path):
 
 def test_comma_format_nodes_and_elements(tmp_path):
     text = (
-        "*KEYWORD\n*NODE\n"
+        "*KEYWORD\n"
+        + part_cards(7)
+        + "*NODE\n"
         + "".join(f"{i},{x},{y},{z}\n" for i, (x, y, z) in enumerate(CUBE, 1))
         + "*ELEMENT_SOLID\n1,7,1,2,3,4,5,6,7,8\n*END\n"
     )
@@ -88,6 +95,7 @@ def test_long_format(tmp_path, style):
     text = (
         header
         + fixed_nodes(CUBE, start=big, idw=20, w=20)
+        + f"*PART +\nbig\n{123456789012:20d}{1:20d}{1:20d}\n"
         + solid
         + f"{1:20d}{123456789012:20d}"
         + "".join(f"{big + k:20d}" for k in range(8))
@@ -106,7 +114,9 @@ def test_long_format(tmp_path, style):
 
 def test_i10_format(tmp_path):
     text = (
-        "*KEYWORD\n*NODE %\n"
+        "*KEYWORD\n"
+        + part_cards(2)
+        + "*NODE %\n"
         + fixed_nodes(CUBE, start=1_000_000_001, idw=10)
         + "*ELEMENT_SOLID %\n"
         + f"{5:10d}{2:10d}"
@@ -134,7 +144,9 @@ def test_two_card_solids_and_tet10(tmp_path):
         (0, 0.5, 0.5),
     ]
     text = (
-        "*KEYWORD\n*NODE\n"
+        "*KEYWORD\n"
+        + part_cards(1, 3)
+        + "*NODE\n"
         + fixed_nodes(CUBE)
         + fixed_nodes(tet10, start=101)
         + "*ELEMENT_SOLID\n       1       1\n"
@@ -161,7 +173,9 @@ def test_degenerate_solids_become_wedges_pyramids_tets(tmp_path):
     body = "".join(
         f"{eid:8d}{1:8d}" + "".join(f"{n:8d}" for n in nodes) + "\n" for eid, nodes in rows[:5]
     )
-    text = "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*ELEMENT_SOLID\n" + body + "*END\n"
+    text = (
+        "*KEYWORD\n" + part_cards(1) + "*NODE\n" + fixed_nodes(CUBE) + "*ELEMENT_SOLID\n" + body
+    ) + "*END\n"
     model = read_deck(write(tmp_path, "degen.k", text))
     assert sorted(model.blocks["wedge6"].ids.tolist()) == [1, 2]
     assert model.blocks["pyramid5"].ids.tolist() == [3]
@@ -178,7 +192,7 @@ def test_degenerate_solids_become_wedges_pyramids_tets(tmp_path):
         assert np.all(vol > 0), etype
     # 4- and 6-node solids written with blank trailing fields
     text = (
-        "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*ELEMENT_SOLID\n"
+        "*KEYWORD\n" + part_cards(1) + "*NODE\n" + fixed_nodes(CUBE) + "*ELEMENT_SOLID\n"
         "       1       1       1       2       3       5\n"
         "       2       1       1       2       3       5       6       7\n*END\n"
     )
@@ -189,7 +203,11 @@ def test_degenerate_solids_become_wedges_pyramids_tets(tmp_path):
 
 def test_solid_ortho_shell_variants_beam_discrete(tmp_path):
     text = (
-        "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*ELEMENT_SOLID_ORTHO\n"
+        "*KEYWORD\n"
+        + part_cards(1, 2, 3, 4)
+        + "*NODE\n"
+        + fixed_nodes(CUBE)
+        + "*ELEMENT_SOLID_ORTHO\n"
         "       1       1       1       2       3       4       5       6       7       8\n"
         "             1.0             0.0             0.0\n"
         "             0.0             1.0             0.0\n"
@@ -251,7 +269,9 @@ def test_nested_includes_and_include_path(tmp_path):
     write(
         tmp_path,
         "deck/main.k",
-        "*KEYWORD\n*INCLUDE_PATH\nlib\n*INCLUDE\nmesh/nodes.k\nparts.k\n*END\n",
+        "*KEYWORD\n"
+        + part_cards(1)
+        + "*INCLUDE_PATH\nlib\n*INCLUDE\nmesh/nodes.k\nparts.k\n*END\n",
     )
     write(
         tmp_path,
@@ -281,7 +301,7 @@ def test_moved_nodes_change_only_coordinate_fields(tmp_path):
         "*KEYWORD\n$ header\n*NODE\n" + fixed_nodes(CUBE[:4]) + "5,0.0,0.0,1.0,0,0\n"
         "       6             1.0             0.0             1.0       7       3\n"
         "       7             1.0             1.0\n"
-        "*INCLUDE\ninc/rest.k\n*ELEMENT_SOLID\n"
+        "*INCLUDE\ninc/rest.k\n" + part_cards(1) + "*ELEMENT_SOLID\n"
         "       1       1       1       2       3       4       5       6       7       8\n*END\n",
     )
     write(tmp_path, "deck/inc/rest.k", "*NODE\n" + fixed_nodes(CUBE[7:], start=8), "\r\n")
@@ -318,7 +338,7 @@ def test_flatten_inlines_includes(tmp_path):
     write(
         tmp_path,
         "d/main.k",
-        "*KEYWORD\n*INCLUDE\na.k\n*ELEMENT_SOLID\n"
+        "*KEYWORD\n*INCLUDE\na.k\n" + part_cards(1) + "*ELEMENT_SOLID\n"
         "       1       1       1       2       3       4       5       6       7       8\n*END\n",
     )
     write(tmp_path, "d/a.k", "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*END\n")
