@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from kneegui.kinematics.tables import table_names
 
 from kneegui.cli import main as cli
 from kneegui.geometry.transforms import rotation_matrix
 from kneegui.io.lsdyna import read_deck, write_model
 from kneegui.model import ElementBlock, Model
+from kneegui.setup.kinematic_tables import table_names
 from kneegui.setup.synthetic import build_synthetic_knee
 
 FUZZ = settings(
