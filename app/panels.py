@@ -256,6 +256,20 @@ class LandmarkPanel(QWidget):
         if key in ("lateral_condyle", "medial_condyle"):
             self.ws.set_condyle_ids(key, [])
 
+    def _point_text(self, point: object) -> str:
+        """An axis landmark as numbers: a node by its id and rest position, a point by its
+        coordinates (model units)."""
+        if point is None:
+            return "–"
+        if isinstance(point, int):
+            try:
+                xyz = self.ws.model.coords[int(self.ws.model.node_index(point))]
+            except Exception:  # an id the model lacks: the setup check reports it
+                return f"node {point} (not in the model)"
+            return f"node {point} ({xyz[0]:.1f}, {xyz[1]:.1f}, {xyz[2]:.1f})"
+        x, y, z = (float(v) for v in point)
+        return f"({x:.1f}, {y:.1f}, {z:.1f})"
+
     def refresh(self) -> None:
         ws = self.ws
         self.undo_button.setEnabled(ws.can_undo)
@@ -265,13 +279,7 @@ class LandmarkPanel(QWidget):
             self.labels[key].setText(f"{len(lm.get(key, []) or [])} nodes")
         for key in ("lr_axis", "femur_axis", "tibia_axis"):
             pts = lm.get(key, []) or []
-            self.labels[key].setText(
-                " → ".join(
-                    "–" if p is None else (f"node {p}" if isinstance(p, int) else "xyz")
-                    for p in pts
-                )
-                or "–"
-            )
+            self.labels[key].setText(" → ".join(self._point_text(p) for p in pts) or "–")
         axes = ws.axes if ws.setup_problem is None else None
         if axes is not None:
             spread = axes.sensitivity
