@@ -200,7 +200,9 @@ def shortfall_region(
         reference = aims.volume.get(etype)
         if reference is not None and np.isfinite(aims.volume_change):
             volume = corner_determinants(coords[conn[rows]], etype).mean(axis=1)
-            ratio = volume / reference[rows]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # an element flat at rest (a damaged deck) misses its aim once it has volume
+                ratio = volume / reference[rows]
             band = 1.0 + aims.volume_change
             miss |= (ratio > band) | (ratio < 1.0 / band)
         region[conn[rows[miss]]] = True
