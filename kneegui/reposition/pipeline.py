@@ -156,8 +156,9 @@ def pose_model(
     relaxation, smoothing = improved.relaxation, improved.smoothing
     achieved = measure_flexion(improved.relaxed, setup)
     # the mapping's stages (pose_bones, pose_blend, ...) and the relaxation's, as before
-    timings["pose_relax"] = 0.0 if relaxation is None else relaxation.seconds
-    timings["pose"] = result.timings_s["total"] + timings["pose_relax"]
+    if relaxation is not None:  # no key when nothing was relaxed (reports read it as absent)
+        timings["pose_relax"] = relaxation.seconds
+    timings["pose"] = result.timings_s["total"] + timings.get("pose_relax", 0.0)
     posed = model.with_coords(improved.relaxed)
     t = time.perf_counter()
     posed_q = compute_quality(posed.coords, posed.blocks)
