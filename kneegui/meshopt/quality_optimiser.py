@@ -34,7 +34,7 @@ Element count, node ids and connectivity never change; only the free nodes move.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -147,6 +147,21 @@ def quality_aims(
     )
 
 
+def _blocks_touching(
+    blocks: Mapping[str, ElementBlock], node_mask: NDArray[np.bool_]
+) -> Iterator[tuple[str, ElementBlock, NDArray[np.int64], NDArray[np.int64]]]:
+    """Each optimised block with its corner connectivity and the rows of its elements that have
+    a node in ``node_mask`` (blocks with none are skipped)."""
+    for etype in OPTIMISED_TYPES:
+        block = blocks.get(etype)
+        if block is None or len(block) == 0:
+            continue
+        conn = block.conn[:, : CORNER_NODES[etype]]
+        rows = np.flatnonzero(node_mask[conn].any(axis=1))
+        if len(rows):
+            yield etype, block, conn, rows
+
+
 def shortfall_region(
     coords: NDArray[np.float64],
     blocks: Mapping[str, ElementBlock],
@@ -182,14 +197,7 @@ def shortfall_region(
     if seeds is not None:
         region[seeds] = True
     conns = {}
-    for etype in OPTIMISED_TYPES:
-        block = blocks.get(etype)
-        if block is None or len(block) == 0:
-            continue
-        conn = block.conn[:, : CORNER_NODES[etype]]
-        rows = np.flatnonzero(allowed[conn].any(axis=1))
-        if len(rows) == 0:
-            continue
+    for etype, block, conn, rows in _blocks_touching(blocks, allowed):
         conns[etype] = conn[rows]
         q = compute_quality(coords, {etype: block}, rows={etype: rows})[etype]
         miss = q.jacobian_corner < aims.jacobian.get(etype, np.zeros(len(block)))[rows]
@@ -327,14 +335,7 @@ def _build_problem(
     is_free[free] = True
     corners, counts, jac_solid, quads, jac_quad, ref_volume = [], [], [], [], [], []
     faces, f_aspect, f_warp, f_skew = [], [], [], []
-    for etype in OPTIMISED_TYPES:
-        block = blocks.get(etype)
-        if block is None or len(block) == 0:
-            continue
-        conn = block.conn[:, : CORNER_NODES[etype]]
-        rows = np.flatnonzero(is_free[conn].any(axis=1))
-        if len(rows) == 0:
-            continue
+    for etype, _block, conn, rows in _blocks_touching(blocks, is_free):
 
         def aim(metric: str, default: float, etype: str = etype, rows=rows) -> NDArray:
             values = getattr(aims, metric).get(etype)
