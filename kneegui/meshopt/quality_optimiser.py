@@ -323,6 +323,21 @@ class _Problem:
     skew_aim: NDArray[np.float64]
     weights: NDArray[np.float64]
 
+    def corner_args(self) -> tuple:
+        """The arguments of :func:`~kneegui.meshopt.quality_kernel.corner_ratio_penalty`
+        between the coordinates and the gradient, in its order."""
+        return (
+            self.corners,
+            self.elem_ptr,
+            self.log_aim,
+            self.log_volume,
+            self.volume_band,
+            self.volume_weight,
+            self.quads,
+            QUAD_TRIPLES,
+            self.quad_log_aim,
+        )
+
 
 def _build_problem(
     blocks: Mapping[str, ElementBlock],
@@ -510,19 +525,7 @@ def corner_ratio_penalty_numpy(
 
 def _penalty(pr: _Problem, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
     """Corner and face penalties at local coordinates ``x``; fills ``grad``."""
-    value = corner_ratio_penalty(
-        x,
-        pr.corners,
-        pr.elem_ptr,
-        pr.log_aim,
-        pr.log_volume,
-        pr.volume_band,
-        pr.volume_weight,
-        pr.quads,
-        QUAD_TRIPLES,
-        pr.quad_log_aim,
-        grad,
-    )
+    value = corner_ratio_penalty(x, *pr.corner_args(), grad)
     if not np.isfinite(value):
         return np.inf
     return float(value) + float(

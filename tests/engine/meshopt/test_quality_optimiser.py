@@ -10,7 +10,6 @@ import pytest
 from kneegui.errors import Cancelled
 from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_penalty
 from kneegui.meshopt.quality_optimiser import (
-    QUAD_TRIPLES,
     QualityAims,
     QualityOptions,
     _build_problem,
@@ -57,17 +56,7 @@ def uniform_aims(blocks, jacobian, aspect=np.inf, warpage=180.0, skew=90.0) -> Q
 
 def corner_args(pr):
     """The corner penalty's arguments after the coordinates (compiled and NumPy orders)."""
-    compiled = (
-        pr.corners,
-        pr.elem_ptr,
-        pr.log_aim,
-        pr.log_volume,
-        pr.volume_band,
-        pr.volume_weight,
-        pr.quads,
-        QUAD_TRIPLES,
-        pr.quad_log_aim,
-    )
+    compiled = pr.corner_args()
     reference = (*compiled[:6], pr.quads, pr.quad_log_aim)
     return compiled, reference
 
