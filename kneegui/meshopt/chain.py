@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -61,6 +61,16 @@ class ImprovementOptions:
     relax: RelaxOptions | None = field(default_factory=RelaxOptions)
     quality: QualityOptions | None = field(default_factory=_export_quality)
     smooth: SmoothOptions | None = field(default_factory=SmoothOptions)
+
+    def scaled(self, length: float) -> ImprovementOptions:
+        """These options for a model drawn ``length`` times larger (or in other units): every
+        stage's lengths scaled (:meth:`RelaxOptions.scaled`, :meth:`QualityOptions.scaled`;
+        the smoother has none)."""
+        return replace(
+            self,
+            relax=None if self.relax is None else self.relax.scaled(length),
+            quality=None if self.quality is None else self.quality.scaled(length),
+        )
 
 
 @dataclass

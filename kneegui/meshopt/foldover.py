@@ -25,7 +25,7 @@ energy; :meth:`FoldoverEnergy.energy_numpy` is the NumPy reference it is tested 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -89,6 +89,8 @@ class RelaxOptions:
         Nodes closer to a bone than this (model units) get a contact plane.
     contact_clearance : float
         Distance from the bone surface the contact holds nodes at (model units).
+    penetration_tolerance : float
+        A contact node deeper than this (model units) inside a bone seeds the relaxed region.
     restarts : int
         How many times the rounds start again when corners are still inverted after
         ``max_rounds``: the nodes of those corners go back to their posed positions and the
@@ -120,6 +122,7 @@ class RelaxOptions:
     contact_band: float = 3.0
     contact_force_depth: float = 1.0
     contact_clearance: float = 0.2
+    penetration_tolerance: float = 1e-3
     restarts: int = 2
     restart_eps: float = 0.05
     slide_skin: bool | None = None
@@ -137,6 +140,17 @@ class RelaxOptions:
             raise ValueError(
                 f"RelaxOptions.eps_decrease must be in (0, 1), not {self.eps_decrease}"
             )
+
+    def scaled(self, length: float) -> RelaxOptions:
+        """These options with every length (model units) multiplied by ``length``: the same
+        relaxation of a model drawn ``length`` times larger (or in other units)."""
+        return replace(
+            self,
+            contact_band=self.contact_band * length,
+            contact_force_depth=self.contact_force_depth * length,
+            contact_clearance=self.contact_clearance * length,
+            penetration_tolerance=self.penetration_tolerance * length,
+        )
 
 
 @dataclass

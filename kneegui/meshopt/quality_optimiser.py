@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,8 +56,9 @@ ConstraintCallback = Callable[
     [NDArray[np.float64]], tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]
 ]
 
-#: Solid types with corner determinants (a tet has one corner: only its sign counts).
-SOLID_CORNER_TYPES = ("hex8", "wedge6", "pyramid5", "tet4")
+#: Solid types with corner determinants (a tet has one corner: only its sign counts; a 10-node
+#: tet is measured by its corner tetrahedron, its mid-side nodes are the caller's).
+SOLID_CORNER_TYPES = ("hex8", "wedge6", "pyramid5", "tet4", "tet10")
 OPTIMISED_TYPES = (*SOLID_CORNER_TYPES, "quad4")
 QUAD_TRIPLES = np.array([t[:3] for t in CORNER_TRIPLES["quad4"]], dtype=np.int64)
 #: Faces of each type as 4 local nodes, triangles padded with -1 (a shell is its own face).
@@ -265,6 +266,17 @@ class QualityOptions:
     constraint_tolerance: float = 0.05
     tolerance: float = 0.02
     settling_rounds: int = 6
+
+    def scaled(self, length: float) -> QualityOptions:
+        """These options for a model drawn ``length`` times larger (or in other units): the
+        constraint tolerance grows with it, and the stiffness per squared model unit shrinks
+        with its square, so the penalty of a violation of the same relative depth is the
+        same (the other terms are ratios and angles)."""
+        return replace(
+            self,
+            constraint_stiffness=self.constraint_stiffness / (length * length),
+            constraint_tolerance=self.constraint_tolerance * length,
+        )
 
 
 @dataclass(frozen=True)

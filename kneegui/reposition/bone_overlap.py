@@ -23,7 +23,8 @@ import numpy as np
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.contact import BoneSurfaceDistance
 
-#: A bone reaching this much (model units) deeper into another than at rest is warned about.
+#: A bone reaching this much deeper into another than at rest is warned about (model units of a
+#: knee of the reference size; :func:`kneegui.reposition.pipeline.pose_warnings` scales it).
 BONE_OVERLAP_TOLERANCE = 0.1
 
 

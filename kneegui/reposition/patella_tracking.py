@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.contact import BoneSurfaceDistance
 
-#: A node closer to the other bone than its target by less than this is clear (model units).
+#: A node closer to the other bone than its target by less than this is clear (model units of a
+#: knee of the reference size; ``PatellaSeating``'s ``length_scale`` scales this and the next).
 SEATING_TOLERANCE = 1e-3
 #: The smallest clear lift is found to within this (model units).
 LIFT_PRECISION = 0.01
@@ -62,6 +63,9 @@ class PatellaSeating:
     band : float
         Only surface nodes closer than this (model units) to the other bone at rest are
         watched: the far side of a bone cannot reach the other.
+    length_scale : float
+        Model units per millimetre of a knee of the reference size: scales the seating's
+        tolerance and precision (:data:`SEATING_TOLERANCE`, :data:`LIFT_PRECISION`).
     """
 
     def __init__(
@@ -71,8 +75,11 @@ class PatellaSeating:
         axis_point: NDArray[np.float64],
         axis_direction: NDArray[np.float64],
         band: float,
+        length_scale: float = 1.0,
     ) -> None:
         self.patella, self.femur = patella, femur
+        self._tolerance = SEATING_TOLERANCE * length_scale
+        self._precision = LIFT_PRECISION * length_scale
         on_femur = femur.query(patella.node_xyz)[0]
         on_patella = patella.query(femur.node_xyz)[0]
         #: The smallest patella-femur distance at rest (0 if they touch or overlap).
@@ -142,7 +149,7 @@ class PatellaSeating:
             return float(short.max()), float(np.max(np.maximum(short, 0.0) / rate))
 
         worst, step = measure(0.0)
-        if worst <= SEATING_TOLERANCE:
+        if worst <= self._tolerance:
             return 0.0
         # lift by the linearised step until clear (the surfaces curve, so a step may fall
         # short or overshoot), then close in on the smallest clear lift by regula falsi
@@ -150,30 +157,30 @@ class PatellaSeating:
         low, worst_low, high, worst_high = 0.0, worst, 0.0, worst
         for _ in range(iterations):
             low, worst_low = high, worst_high
-            high = high + max(step, LIFT_PRECISION)
+            high = high + max(step, self._precision)
             worst_high, step = measure(high)
-            if worst_high <= SEATING_TOLERANCE:
+            if worst_high <= self._tolerance:
                 break
         else:
             return high
         # interpolation weights: the true shortfalls, the stalled side's halved (Illinois)
-        weight_low, weight_high = worst_low - SEATING_TOLERANCE, worst_high - SEATING_TOLERANCE
+        weight_low, weight_high = worst_low - self._tolerance, worst_high - self._tolerance
         side = 0
         for _ in range(iterations):
-            if high - low <= LIFT_PRECISION or worst_high >= -LIFT_PRECISION:
+            if high - low <= self._precision or worst_high >= -self._precision:
                 break
             middle = high - weight_high * (high - low) / (weight_high - weight_low)
             if not np.isfinite(middle):  # a side with nothing liftable weighs -inf: bisect
                 middle = 0.5 * (low + high)
             middle = min(max(middle, low + 0.05 * (high - low)), high - 0.05 * (high - low))
             worst_middle, _ = measure(middle)
-            if worst_middle <= SEATING_TOLERANCE:
+            if worst_middle <= self._tolerance:
                 high, worst_high = middle, worst_middle
-                weight_high = worst_middle - SEATING_TOLERANCE
+                weight_high = worst_middle - self._tolerance
                 weight_low *= 0.5 if side == +1 else 1.0
                 side = +1
             else:
-                low, weight_low = middle, worst_middle - SEATING_TOLERANCE
+                low, weight_low = middle, worst_middle - self._tolerance
                 weight_high *= 0.5 if side == -1 else 1.0
                 side = -1
         return high

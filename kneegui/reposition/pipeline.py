@@ -94,12 +94,16 @@ def _volume_change(
     }
 
 
-def pose_warnings(overlaps: list[BoneOverlap], in_bones: dict[str, Any]) -> list[str]:
+def pose_warnings(
+    overlaps: list[BoneOverlap], in_bones: dict[str, Any], length_scale: float = 1.0
+) -> list[str]:
     """The pose's warnings, one line each (the report's, the CLI's and the GUI's status line):
-    a bone reaching into another deeper than it did at rest (the kinematics do not suit these
+    a bone reaching into another deeper than it did at rest by more than
+    :data:`BONE_OVERLAP_TOLERANCE` times ``length_scale`` (the kinematics do not suit these
     bones: axes, landmarks or tables, and tissue between them is crushed), then each bone with
     soft tissue inside it."""
-    warnings = [o.describe() for o in overlaps if o.added_depth > BONE_OVERLAP_TOLERANCE]
+    tolerance = BONE_OVERLAP_TOLERANCE * length_scale
+    warnings = [o.describe() for o in overlaps if o.added_depth > tolerance]
     return warnings + tissue_in_bones_warnings(in_bones)
 
 
@@ -177,7 +181,7 @@ def pose_model(
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
-    warnings = pose_warnings(overlaps, in_bones)
+    warnings = pose_warnings(overlaps, in_bones, repositioner.length_scale)
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,

@@ -66,6 +66,9 @@ __all__ = [
 
 ProgressCallback = Callable[[float, str], None]
 
+#: The mid-side nodes of a 10-node tet (local index) and the corners of their edges.
+TET10_MIDSIDE = {4: (0, 1), 5: (1, 2), 6: (2, 0), 7: (0, 3), 8: (1, 3), 9: (2, 3)}
+
 #: Where the virtual apex of a shell's tetrahedra sits, from the shell's centroid (0) to the
 #: centroid of the solid it covers (1).
 APEX_DEPTH = 0.3
@@ -170,6 +173,26 @@ def shell_face_tetrahedra(
     for a, b, c in ((0, 1, 2), (0, 2, 3), (1, 2, 3), (1, 3, 0)):
         tets.append(np.column_stack([q[:, a], q[:, b], q[:, c], qa]))
     return np.concatenate(tets).astype(np.int64), virtual
+
+
+def _free_midside_nodes(
+    blocks: Mapping[str, ElementBlock] | None,
+    is_free: NDArray[np.bool_],
+    free: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Mid-side nodes of the 10-node tets among ``free`` whose edge has a free corner, and the
+    two corner nodes of each one's edge ((M,), (M, 2))."""
+    block = None if blocks is None else blocks.get("tet10")
+    if block is None or len(block) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
+    conn = block.conn
+    mid = conn[:, list(TET10_MIDSIDE)].ravel()
+    ends = conn[:, [list(e) for e in TET10_MIDSIDE.values()]].reshape(-1, 2)
+    requested = np.zeros(len(is_free), dtype=bool)
+    requested[free] = True
+    keep = requested[mid] & is_free[ends].any(axis=1)
+    mid, first = np.unique(mid[keep], return_index=True)
+    return mid.astype(np.int64), ends[keep][first].astype(np.int64)
 
 
 class ElasticRelaxation:
@@ -322,6 +345,22 @@ class ElasticRelaxation:
                 (np.ones(nb.nnz), np.searchsorted(used, nb.indices), nb.indptr),
                 shape=(len(self.contact_nodes), len(used)),
             )
+
+        # 10-node tets: the energy and the quality optimisation see their corner tetrahedra only;
+        # a free mid-side node follows the mean motion of its edge's ends
+        self._midside, self._midside_ends = _free_midside_nodes(blocks, self.is_free, free)
+
+    def carry_midside(
+        self, before: NDArray[np.float64], after: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """``after`` with each free mid-side node moved from ``before`` by the mean motion of its
+        edge's two corner nodes (a new array when there are any)."""
+        if len(self._midside) == 0:
+            return after
+        out = np.array(after, dtype=np.float64, copy=True)
+        moved = after[self._midside_ends] - before[self._midside_ends]  # (M, 2, 3)
+        out[self._midside] = before[self._midside] + moved.mean(axis=1)
+        return out
 
     def is_free_quad(self, free: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Which of :attr:`quads` have a node among ``free``."""
@@ -492,7 +531,7 @@ class ElasticRelaxation:
         if use_contact:
             _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
             report.deepest_penetration = float(max(0.0, -depth.min()))
-            penetrating = self.contact_nodes[depth < -1e-3]
+            penetrating = self.contact_nodes[depth < -self.options.penetration_tolerance]
         free = self.degraded_region(x, penetrating)
         report.free_nodes = len(free)
         d_min = np.inf  # nothing tangled
@@ -507,7 +546,7 @@ class ElasticRelaxation:
                 progress,
                 cancel,
             )
-        return x, report, d_min > 0
+        return self.carry_midside(coords, x), report, d_min > 0
 
     def _minimise_energy(
         self,
@@ -680,7 +719,7 @@ class ElasticRelaxation:
             return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
 
         try:
-            return optimise_quality(
+            out, report = optimise_quality(
                 x,
                 self.blocks,
                 free,
@@ -690,6 +729,7 @@ class ElasticRelaxation:
                 progress=progress,
                 cancel=cancel,
             )
+            return self.carry_midside(x, out), report
         except ValueError:  # an element stayed inverted or flat: the input has one (issue #22)
             raise GeometryError(
                 "the relaxation cannot untangle the soft tissue it moves: an element there is "

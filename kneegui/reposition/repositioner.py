@@ -104,6 +104,13 @@ PATELLA_SEATING_BAND = 0.5
 #: interpolated.
 PATELLA_LIFT_STEP = 1.0
 
+#: The knee size the options' lengths are stated for (mm): the mean of the lateral and medial
+#: posterior condyle radii Jani et al. (2012) measured, 20.5 and 23.3 mm. Every length option
+#: (model units) is multiplied by the model's own mean condyle radius over this
+#: (:attr:`Repositioner.length_scale`), so a model in metres, or a smaller knee, is posed with
+#: the same relative clearances and tolerances.
+REFERENCE_CONDYLE_RADIUS_MM = 21.9
+
 #: Depth (in mean condyle radii, about 0.45 mm on the demo) beyond which a soft-tissue node counts
 #: as inside a bone in the pose report: nodes of a sliding interface lie on the surface itself.
 TISSUE_IN_BONE_TOLERANCE = 0.02
@@ -112,6 +119,11 @@ TISSUE_IN_BONE_TOLERANCE = 0.02
 @dataclass(frozen=True)
 class RepositionOptions:
     """Tunable choices of the repositioner (all have measured defaults).
+
+    Lengths (``coupling_length``, ``contact_clearance``, ``contour_margin`` and those of
+    ``improvement``'s stages) are millimetres of a knee of the reference size
+    (:data:`REFERENCE_CONDYLE_RADIUS_MM`); the repositioner scales them to the model
+    (:attr:`Repositioner.length_scale`). Reaches and regions are in mean condyle radii.
 
     Attributes
     ----------
@@ -154,7 +166,7 @@ class RepositionOptions:
         None lets them cross, which gives the crease behind a deeply flexed knee more room.
     contact_reach, contact_clearance
         Soft-tissue nodes within ``contact_reach`` mean condyle radii of a bone slide on it but
-        are kept out of it, at their rest clearance up to ``contact_clearance`` (model units);
+        are kept out of it, at their rest clearance up to ``contact_clearance``;
         ``contact_reach = 0`` (the default) turns contact off; 0.25 is a good value when
         penetrations matter more than element quality (see :mod:`kneegui.reposition.contact`
         and docs/repositioning.md for the measured trade-off).
@@ -310,6 +322,10 @@ class Repositioner:
         Measured flexion of the initial pose (degrees).
     groups : NodeGroups
         How every node moves.
+    length_scale : float
+        Model units per millimetre of a knee of the reference size: the model's mean condyle
+        radius over :data:`REFERENCE_CONDYLE_RADIUS_MM` (1 for a knee of that size in mm,
+        0.001 for the same knee in metres). Every length option is multiplied by it.
     timings_s : dict
         Seconds spent in each precompute stage.
     """
@@ -338,6 +354,7 @@ class Repositioner:
         t = self._stage("axes", 0.0)
         self.axes: JointAxes = compute_joint_axes(coords, setup)
         self.initial_flexion = float(self.axes.initial_flexion_deg)
+        self.length_scale = self._condyle_size() / REFERENCE_CONDYLE_RADIUS_MM
         self._end("axes", t)
         t = self._stage("node groups", 0.1)
         self.groups = classify_nodes(model, setup)
@@ -402,6 +419,10 @@ class Repositioner:
     def _end(self, name: str, t0: float) -> None:
         self.timings_s[name] = time.perf_counter() - t0
 
+    def _condyle_size(self) -> float:
+        """The mean condyle radius (model units): the knee's own length scale."""
+        return 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+
     def _fixed_surface(self) -> NDArray[np.int64]:
         return self.groups.segment["fixed"]
 
@@ -452,7 +473,7 @@ class Repositioner:
         lo, hi = (k * size for k in opt.coupling_radii)
         t = np.clip((r - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
         fade = t * t * (3.0 - 2.0 * t)
-        return opt.coupling_strength * np.exp(-d / opt.coupling_length) * fade
+        return opt.coupling_strength * np.exp(-d / (opt.coupling_length * self.length_scale)) * fade
 
     def _bone_triangles(self) -> dict[str, NDArray[np.int64]]:
         """Outer surface triangles of each moving segment (solids' faces, else its shells)."""
@@ -505,6 +526,7 @@ class Repositioner:
             axis.point,
             axis.direction,
             band=PATELLA_SEATING_BAND * size,
+            length_scale=self.length_scale,
         )
 
     def _elastic_relaxation(self) -> ElasticRelaxation:
@@ -517,11 +539,13 @@ class Repositioner:
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         free = self._soft_near_joint()
         initial = compute_quality(model.coords, model.blocks)
-        options = self.options.improvement.relax or RelaxOptions()
+        options = (self.options.improvement.relax or RelaxOptions()).scaled(self.length_scale)
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
         margin = self.options.contour_margin
         contours = self._relaxed_contours() if margin is not None else None
+        if margin is not None:
+            margin *= self.length_scale
         return ElasticRelaxation(
             model.coords,
             np.concatenate([tets, face_tets]),
@@ -587,7 +611,7 @@ class Repositioner:
             g.soft,
             mesh_edges(model.blocks, masks),
             reach=reach * size,
-            clearance=self.options.contact_clearance,
+            clearance=self.options.contact_clearance * self.length_scale,
             ray_depth=None
             if self.options.push_ray_depth is None
             else tuple(k * size for k in self.options.push_ray_depth),
@@ -763,7 +787,7 @@ class Repositioner:
             Improved coordinates (bones and fixed nodes unchanged).
         report : ImprovementReport
         """
-        options = self.options.improvement
+        options = self.options.improvement.scaled(self.length_scale)
         if not smooth:
             options = replace(options, smooth=None)
         if not relax:
