@@ -11,6 +11,6 @@ flesh, skin, cruciate and collateral ligaments, menisci, patellar tendon and kne
 """
 
 from kneegui.demo.design import DemoDesign
-from kneegui.demo.generator import PARTS, DemoLeg, generate_demo_leg, write_demo
+from kneegui.demo.generator import PARTS, DemoLeg, Variant, generate_demo_leg, write_demo
 
-__all__ = ["PARTS", "DemoDesign", "DemoLeg", "generate_demo_leg", "write_demo"]
+__all__ = ["PARTS", "DemoDesign", "DemoLeg", "Variant", "generate_demo_leg", "write_demo"]
