@@ -206,7 +206,7 @@ class RepositionOptions:
     relax_reach: float = 5.0
     relax_region: float = 1.0
     improvement: ImprovementOptions = field(default_factory=ImprovementOptions)
-    volume_change: float | None = 0.5
+    volume_change: float | None = 0.2
     contour_margin: float | None = 0.5
 
     def __post_init__(self) -> None:
