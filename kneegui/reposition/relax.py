@@ -175,6 +175,21 @@ def shell_face_tetrahedra(
     return np.concatenate(tets).astype(np.int64), virtual
 
 
+def _pinned_corners(
+    tets: NDArray[np.int64], is_free: NDArray[np.bool_], segment_of: NDArray[np.int64]
+) -> NDArray[np.bool_]:
+    """Corners with at most one free node whose other real nodes lie on two rigid segments or
+    more (virtual nodes count as free)."""
+    n = len(segment_of)
+    real = tets < n
+    seg = np.where(real, segment_of[np.minimum(tets, n - 1)], -1)
+    seg = np.where(is_free[tets], -1, seg)
+    on = seg >= 0
+    lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
+    hi = np.where(on, seg, -1).max(axis=1)
+    return (is_free[tets].sum(axis=1) <= 1) & on.any(axis=1) & (lo != hi)
+
+
 def _free_midside_nodes(
     blocks: Mapping[str, ElementBlock] | None,
     is_free: NDArray[np.bool_],
@@ -241,6 +256,12 @@ class ElasticRelaxation:
         Every skin contour keeps at least this far (model units) beyond the plane of its
         neighbour nearer the joint in the quality optimisation, so that no contour crosses
         another; None lets them cross.
+    segment_of : (N,) ndarray of int, optional
+        The rigid segment each node moves with (-1: none). A corner tetrahedron with at most
+        one free node whose other nodes lie on two segments or more is left out of the
+        energy: the bones' relative motion dictates its shape (tissue welded to femur and
+        tibia across the joint), and an inverted one would keep the barrier from hardening
+        for every other corner.
     """
 
     def __init__(
@@ -260,6 +281,7 @@ class ElasticRelaxation:
         aims: QualityAims | None = None,
         skin_contours: SkinContours | None = None,
         contour_margin: float | None = None,
+        segment_of: NDArray[np.int64] | None = None,
     ) -> None:
         self.options = options or RelaxOptions()
         self.blocks = blocks
@@ -279,6 +301,11 @@ class ElasticRelaxation:
         is_free[free] = True
         tets = np.asarray(tets, dtype=np.int64)
         tets = tets[is_free[tets].any(axis=1)]
+        self.pinned_corners = 0
+        if segment_of is not None and len(tets):
+            pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64))
+            self.pinned_corners = int(pinned.sum())
+            tets = tets[~pinned]
         e0 = edge_matrices(self.augment(rest_coords), tets)
         det0 = np.linalg.det(e0)
         usable = np.abs(det0) > 1e-12 * np.maximum(np.abs(e0).max(axis=(1, 2)) ** 3, 1e-300)

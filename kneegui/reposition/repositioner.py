@@ -566,7 +566,16 @@ class Repositioner:
             ),
             skin_contours=contours,
             contour_margin=margin,
+            segment_of=self._segment_of(),
         )
+
+    def _segment_of(self) -> NDArray[np.int64]:
+        """(N,) index of the rigid segment (femur, tibia, patella, fixed) each node moves with,
+        -1 for the soft tissue."""
+        out = np.full(self.model.n_nodes, -1, dtype=np.int64)
+        for k, name in enumerate(SEGMENTS):
+            out[self.groups.segment[name]] = k
+        return out
 
     def _relaxed_contours(self) -> SkinContours | None:
         """The skin contours the relaxation keeps in order (the method's own, else built once;

@@ -245,3 +245,42 @@ def test_sliding_nodes_move_only_in_their_surface_plane():
     np.testing.assert_allclose(slid[sliding, 2], moved[sliding, 2], atol=1e-9)
     assert np.abs(slid[sliding, :2] - moved[sliding, :2]).max() > 0.5  # they did slide
     assert np.abs(unconstrained[sliding, 2] - moved[sliding, 2]).max() > 1e-4  # free ones leave
+
+
+def test_corners_pinned_between_two_bones_are_left_out():
+    """A corner with one free node and the others on two rigid segments is shaped by the
+    bones' relative motion, not by the energy; a corner on one segment, or with two free
+    nodes, stays in."""
+    rest = np.array(
+        [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [0, -1, 0]], dtype=float
+    )
+    tets = np.array([[0, 1, 2, 3], [4, 1, 2, 3], [0, 1, 5, 4]])
+    segment_of = np.array([0, 0, 1, 1, -1, 0])  # nodes 0, 5 on bone 0; 2, 3 on bone 1
+    for tet in tets:
+        assert np.linalg.det(rest[tet[1:]] - rest[tet[0]]) != 0
+    relax = ElasticRelaxation(rest, tets, np.array([4]), segment_of=segment_of)
+    # corner 0 has no free node (dropped anyway), corner 1 one free node over bones 0 and 1
+    # (pinned), corner 2 one free node over bone 0 only (kept)
+    assert relax.pinned_corners == 1
+    assert relax.tets.tolist() == [[0, 1, 5, 4]]
+
+
+def test_free_midside_nodes_of_tet10_follow_their_edge():
+    """The energy sees a 10-node tet's corner tetrahedron; its free mid-side nodes move by the
+    mean motion of their edge's corners, so a curved edge keeps its bow."""
+    corners = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
+    edges = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
+    mids = np.array([(corners[a] + corners[b]) / 2 for a, b in edges])
+    mids[0] += [0, -1, 0]  # a bowed edge
+    rest = np.vstack([corners, mids])
+    block = ElementBlock("tet10", np.array([1]), np.array([1]), np.arange(10)[None, :])
+    free = np.array([3, 7, 8, 9])  # the apex and the mid-side nodes of its edges
+    relax = ElasticRelaxation(
+        rest, corner_tetrahedra({"tet10": block}), free, blocks={"tet10": block}
+    )
+    moved = rest.copy()
+    moved[3] += [1.0, 2.0, 3.0]
+    out = relax.carry_midside(rest, moved)
+    np.testing.assert_allclose(out[7], rest[7] + [0.5, 1.0, 1.5])  # edge 0-3
+    np.testing.assert_allclose(out[4], rest[4])  # edge 0-1 not free: stays
+    np.testing.assert_allclose(out[:4], moved[:4])

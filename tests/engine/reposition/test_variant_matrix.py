@@ -107,10 +107,9 @@ def export_cell(variant: Variant, rep: Repositioner, angle: float) -> Cell:
     q = compute_quality(coords, model.blocks)
     locked = locked_elements(model, rep)
     movable = locked_n = 0
-    for etype, res in q.items():
-        if etype not in locked:
-            continue
-        bad = res.rows[res.jacobian_corner <= 0]
+    for etype in locked:
+        res = q[etype]
+        bad = res.rows[res.inverted]
         locked_n += int(locked[etype][bad].sum())
         movable += int((~locked[etype][bad]).sum())
     interior = np.concatenate([rep.groups.flesh, rep.groups.band])
@@ -165,7 +164,7 @@ def test_export_holds_on_variant(repositioners, name, angle):
     assert cell.in_bone == 0, cell
     if angle == 90.0:
         assert cell.worst_jacobian >= cell.initial_worst_jacobian, cell
-        assert cell.p95_pct <= 0.8 * P95_LIMIT_PCT, cell
+        assert cell.p95_pct <= P95_LIMIT_PCT, cell
 
 
 def test_length_options_scale_with_the_model(repositioners):
