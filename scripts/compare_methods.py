@@ -234,6 +234,7 @@ def measure_variants(
                     "p95_element_volume_change_pct": v["soft_element_p95_abs_pct"],
                     "elements_volume_change_over_25_pct": v["soft_elements_over_pct"]["25"],
                     "gate_passed": posed.passes_gate,
+                    "gate_reasons": posed.gate_reasons,
                     "seconds": seconds,
                 }
             )

@@ -171,6 +171,8 @@ KNOWN_MISSES = {
         "(coarse demo at 90 deg: 77, with 39 locked)"
         for angle in (60.0, 90.0, 120.0)
     },
+    ("hex-left", 90.0, "quality"): "worst corner Jacobian 0.3295 against the initial 0.3304 "
+    "(the right leg: 0.338)",
     ("welded", 90.0, "quality"): "worst corner Jacobian below zero (inverted elements)",
 }
 
