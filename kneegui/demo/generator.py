@@ -30,6 +30,8 @@ UNITS = {"mm": 1.0, "m": 1e-3}
 FLEXION_RANGE_DEG = (0.0, 20.0)
 #: Shaft cell aspect of the variants with tetrahedra: a tet cut from a long cell is a sliver.
 TET_SHAFT_ASPECT = 3.0
+#: Repair passes at most (each grows its patch around the elements still failing).
+REPAIR_ROUNDS = 3
 
 
 @dataclass(frozen=True)
@@ -313,7 +315,8 @@ def build_demo_leg(
 
     The grid is built and measured (:func:`quality_problems`); if an element misses a bound,
     the free flesh nodes around it are moved (:func:`repair_grid`) and the mesh is measured
-    again. A mesh that met the bounds as built is returned untouched.
+    again, up to :data:`REPAIR_ROUNDS` times. A mesh that met the bounds as built is returned
+    untouched.
 
     Parameters
     ----------
@@ -342,11 +345,15 @@ def build_demo_leg(
     leg = _assemble(grid, design, side, as_hex)
     problems = quality_problems(leg.model)
     moved = 0
-    if problems:
-        grid, moved = repair_grid(grid)
-        if moved:
-            leg = _assemble(grid, design, side, as_hex)
-            problems = quality_problems(leg.model)
+    for _ in range(REPAIR_ROUNDS):
+        if not problems:
+            break
+        grid, moved_now = repair_grid(grid)
+        if not moved_now:
+            break
+        moved += moved_now
+        leg = _assemble(grid, design, side, as_hex)
+        problems = quality_problems(leg.model)
     if variant != as_hex and not problems:
         leg = _assemble(grid, design, side, variant)
         inverted = leg.stats.get("inverted_tets", 0)
@@ -465,9 +472,10 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
         blocks[tet_type] = ElementBlock(
             tet_type, np.arange(n_hex + 1, n_solid + 1), tet_pid, tet_conn
         )
-    blocks["quad4"] = ElementBlock(
-        "quad4", np.arange(shell_start, shell_start + len(quad_conn)), quad_pid, quad_conn
-    )
+    if len(quad_conn) or not len(tri_conn):
+        blocks["quad4"] = ElementBlock(
+            "quad4", np.arange(shell_start, shell_start + len(quad_conn)), quad_pid, quad_conn
+        )
     if len(tri_conn):
         tri_start = shell_start + len(quad_conn)
         blocks["tri3"] = ElementBlock(
