@@ -40,6 +40,8 @@ _HEX_FACES = np.array(SOLID_FACES["hex8"])  # outward from their cell
 #: The 6 tet edges as corner pairs, and the mid-edge order of a 10-node tet (topology.tet10).
 TET_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
 #: HyperMesh collapse normalisation: height / sqrt(opposite face area) of the regular tet.
+#: A centre stops trying once its step has halved this often without a better position.
+MAX_HALVINGS = 4
 _COLLAPSE_REGULAR = np.sqrt(2.0 / 3.0) / np.sqrt(np.sqrt(3.0) / 4.0)
 
 
@@ -320,9 +322,13 @@ def improve_centres(
         [np.choose(corner, [st_conn[..., opposite[k][m]] for k in range(4)]) for m in range(3)],
         axis=-1,
     )  # (c, w, 3)
+    min_step = step / 2.0**MAX_HALVINGS
     for _ in range(sweeps):
         for c in range(colour.max() + 1):
-            sel = np.flatnonzero(colour == c)
+            # a node whose step has halved MAX_HALVINGS times found nothing better: it is done
+            sel = np.flatnonzero((colour == c) & (step > min_step))
+            if len(sel) == 0:
+                continue
             node = movable[sel]
             valid = st_valid[sel]
             base = out[base_nodes[sel]]  # (s, w, 3, 3)

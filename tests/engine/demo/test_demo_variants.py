@@ -16,9 +16,12 @@ from kneegui.demo import tetmesh as tm
 from kneegui.demo.generator import DECK_NAME, SETUP_NAME, Variant, build_demo_leg
 from kneegui.errors import KneeguiError
 from kneegui.geometry.axes import compute_joint_axes, measure_flexion
+from kneegui.cli import main as cli_main
+from kneegui.io.atomic import atomic_write_text
+from kneegui.io.lsdyna import write_model
 from kneegui.io.lsdyna_read import read_deck
 from kneegui.quality import compute_quality
-from kneegui.setup.format import load_setup
+from kneegui.setup.format import load_setup, setup_to_json
 
 SMALL = 7_000  # the coarsest grid: every variant in seconds
 
@@ -58,8 +61,11 @@ def test_variant_writes_reads_back_and_has_no_inverted_element(variant, tmp_path
     variant = dict(variant)
     side = variant.pop("side", "right")
     leg = _leg(SMALL, side, **variant)
-    deck, setup_path = write_demo(tmp_path, SMALL, side, **variant)
-    assert deck.name == DECK_NAME and setup_path.name == SETUP_NAME
+    # the files write_demo writes for this leg (generation is deterministic; the CLI and
+    # write_demo themselves are tested below on a fast variant)
+    deck = write_model(leg.model, tmp_path / DECK_NAME)
+    setup_path = tmp_path / SETUP_NAME
+    atomic_write_text(setup_path, setup_to_json(dict(leg.setup, model=DECK_NAME)))
     model = read_deck(deck)
     assert {t: len(b) for t, b in model.blocks.items()} == {
         t: len(b) for t, b in leg.model.blocks.items()
@@ -125,6 +131,7 @@ def test_mixed_variant_has_tet_flesh_and_hex_bones_sharing_nodes():
     assert len(tet_nodes & hex_nodes) > 100
 
 
+@pytest.mark.slow
 def test_tet10_has_mid_edge_nodes_on_straight_edges():
     model = _leg(element_type="tet10").model
     conn = model.blocks["tet10"].conn
@@ -217,3 +224,19 @@ def test_default_variant_is_the_plain_demo():
     assert Variant() == Variant("hex", "sliding", "mm")
     assert "variant" not in _leg().stats
     assert replace(Variant(), element_type="tet").has_tets
+
+
+def test_cli_writes_a_variant(tmp_path, capsys):
+    out = tmp_path / "demo"
+    argv = ["demo", str(out), "--elements", str(SMALL), "--joint", "welded", "--unit", "m",
+            "--initial-flexion", "5", "--side", "left"]
+    assert cli_main(argv) == 0
+    leg = _leg(SMALL, "left", joint="welded", unit="m", initial_flexion=5.0)
+    model = read_deck(out / DECK_NAME)
+    assert np.abs(model.coords - leg.model.coords).max() < 1e-9
+    text = (out / DECK_NAME).read_text().splitlines()
+    assert text[2] == "kneegui demo leg (left, 7224 solids, hex welded, 5 deg, m)"
+    assert load_setup(out / SETUP_NAME, model).side == "left"
+    _, err = capsys.readouterr()
+    with pytest.raises(SystemExit):
+        cli_main(["demo", str(out), "--element-type", "prism"])
