@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from kneegui.demo import grid as g
-from kneegui.demo.design import DemoDesign
 from kneegui.demo import tetmesh
+from kneegui.demo.design import DemoDesign
 from kneegui.demo.layout import SHAFT_ASPECT, Layout, make_layout
 from kneegui.demo.repair import QualityTargets, repair_quality
 from kneegui.demo.sliding import detach_soft_tissue
@@ -383,7 +383,10 @@ def repair_grid(grid: g.Grid) -> tuple[g.Grid, int]:
     return replace(grid, coords=coords), moved
 
 
-def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> DemoLeg:
+def _assemble(
+    grid: g.Grid, design: DemoDesign, side: str, variant: Variant | None = None
+) -> DemoLeg:
+    variant = variant or Variant()
     suffix = "R" if side == "right" else "L"
     labels = grid.cell_label
     solid_pid = np.zeros(len(labels), dtype=np.int64)
@@ -420,15 +423,32 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
     tri_pid = np.zeros(0, dtype=np.int64)
     tet_stats: dict[str, Any] = {}
     if variant.has_tets:
-        (grid_coords, hex_conn, hex_pid, tet_conn, tet_pid, quad_conn, quad_pid, tri_conn,
-         tri_pid, tet_stats) = _cut_tets(
+        (
+            grid_coords,
+            hex_conn,
+            hex_pid,
+            tet_conn,
+            tet_pid,
+            quad_conn,
+            quad_pid,
+            tri_conn,
+            tri_pid,
+            tet_stats,
+        ) = _cut_tets(
             grid_coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, role_pids["flesh"]
         )
 
-    blocks_in = [(hex_conn, hex_pid), (tet_conn, tet_pid), (quad_conn, quad_pid), (tri_conn, tri_pid)]
+    blocks_in = [
+        (hex_conn, hex_pid),
+        (tet_conn, tet_pid),
+        (quad_conn, quad_pid),
+        (tri_conn, tri_pid),
+    ]
     if variant.joint == "sliding":
         # soft tissue slides on the bones around the joint (see kneegui.demo.sliding)
-        sliding = role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
+        sliding = (
+            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
+        )
         for bones, soft, attached in (
             # the menisci slide under the femur but sit on the tibia; the flesh slides on both
             (role_pids["femur"], sliding + role_pids["meniscus"], []),
@@ -444,9 +464,7 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
         grid_coords, tet_conn = tetmesh.add_mid_edge_nodes(grid_coords, tet_conn)
         tet_type = "tet10"
 
-    used = np.unique(
-        np.concatenate([c.ravel() for c in (hex_conn, tet_conn, quad_conn, tri_conn)])
-    )
+    used = np.unique(np.concatenate([c.ravel() for c in (hex_conn, tet_conn, quad_conn, tri_conn)]))
     remap = np.full(len(grid_coords), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     coords = grid_coords[used].copy()
