@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from kneegui.demo import grid as g
 from kneegui.demo import tetmesh
@@ -435,7 +436,14 @@ def _assemble(
             tri_pid,
             tet_stats,
         ) = _cut_tets(
-            grid_coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, role_pids["flesh"]
+            grid_coords,
+            hex_conn,
+            hex_pid,
+            quad_conn,
+            quad_pid,
+            variant,
+            role_pids["flesh"],
+            _pinned_nodes(grid),
         )
 
     blocks_in = [
@@ -536,9 +544,20 @@ def _assemble(
     return DemoLeg(model, setup, design, grid.layout, side, stats)
 
 
-def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pids):
+def _pinned_nodes(grid: g.Grid) -> NDArray[np.bool_]:
+    """Lattice nodes the tet improvement must not move: on the two cuts or on a cavity cell."""
+    ix = g._Index(grid.layout)
+    layer = np.arange(len(grid.coords)) // ix.per_layer
+    pinned = (layer == 0) | (layer == grid.layout.nk)
+    pinned[grid.cell_conn[grid.cell_label == g.VOID].ravel()] = True
+    return pinned
+
+
+def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pids, pinned):
     """Cut the tet cells of the variant into a BCC tet mesh (:mod:`kneegui.demo.tetmesh`), move
-    the cell centres to the best worst quality, and split the shells on cut faces."""
+    the cell centres and the grid nodes inside one part (not on a shell, a part boundary, a cut or
+    the cavity: the anatomy stays as it is) to the best worst tet quality, and split the shells on
+    cut faces."""
     if variant.element_type == "mixed":
         is_tet = np.isin(hex_pid, flesh_pids)
     else:
@@ -546,7 +565,20 @@ def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pid
     # the part id is the label: BCC tets never cross a part boundary
     mesh = tetmesh.tetrahedralise(coords, hex_conn, hex_pid, is_tet, forced_split=quad_conn)
     centres = mesh.centre_of[mesh.centre_of >= 0]
-    new_coords = tetmesh.improve_centres(mesh.coords, mesh.tets, centres)
+    n = len(coords)
+    lowest = np.full(n, np.iinfo(np.int64).max)
+    highest = np.full(n, -1)
+    np.minimum.at(lowest, hex_conn.ravel(), np.repeat(hex_pid, 8))
+    np.maximum.at(highest, hex_conn.ravel(), np.repeat(hex_pid, 8))
+    free = (lowest == highest) & ~pinned
+    free[quad_conn.ravel()] = False  # shells keep their shape
+    in_tets = np.zeros(len(mesh.coords), dtype=bool)
+    in_tets[mesh.tets.ravel()] = True
+    in_hexes = np.zeros(len(mesh.coords), dtype=bool)
+    in_hexes[hex_conn[mesh.hex_rows].ravel()] = True
+    corners = np.flatnonzero(free & in_tets[: len(free)] & ~in_hexes[: len(free)])
+    movable = np.concatenate([centres, corners])
+    new_coords = tetmesh.improve_centres(mesh.coords, mesh.tets, movable)
     q = tetmesh.tet_quality(new_coords, mesh.tets)
     tet_pid = hex_pid[mesh.tet_cell]
     # shells on cut faces become the same two triangles

@@ -9,7 +9,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from kneegui.cli import main as cli_main
 from kneegui.demo import PARTS, generate_demo_leg
@@ -100,22 +99,28 @@ def test_tet_variant_is_a_bcc_mesh_not_split_hexes():
     model = leg.model
     assert "hex8" not in model.blocks
     tets = model.blocks["tet4"].conn
-    # the same grid as hexahedra: the tet mesh has a node in every cell (the centres) that no
-    # hex mesh (nor a split of it) has, and most tets join two centres across a cell face
+    # the same grid as hexahedra: the tet mesh has one node more per cell (its centre), which no
+    # split of the hexes has. Node ids follow the grid: the grid's nodes, then the centres, then
+    # the sliding interface's coincident copies (as many as in the hex mesh).
     hexes, problems = build_demo_leg(leg.layout, leg.design, "right")
     assert not problems
-    hex_nodes = hexes.model.coords
-    dist, _ = cKDTree(hex_nodes).query(model.coords)
-    centre = dist > 1e-6
     n_cells = len(hexes.model.blocks["hex8"])
-    assert centre.sum() == n_cells == leg.stats["tet_cells"]
+    assert model.n_nodes - hexes.model.n_nodes == n_cells == leg.stats["tet_cells"]
+    copies = len(model.coords) - len(np.unique(model.coords, axis=0))
+    assert copies == len(hexes.model.coords) - len(np.unique(hexes.model.coords, axis=0)) > 0
+    first = hexes.model.n_nodes - copies
+    centre = np.zeros(model.n_nodes, dtype=bool)
+    centre[first : first + n_cells] = True
+    # the centres lie inside the mesh, on no shell
+    shells = np.concatenate([b.conn.ravel() for t, b in model.blocks.items() if t == "tri3"])
+    assert not centre[shells].any()
     per_tet = centre[tets].sum(axis=1)
     assert set(np.unique(per_tet).tolist()) == {1, 2}
     assert (per_tet == 2).mean() > 0.6
     # every centre is a BCC node: its tets cross faces to (up to) 6 neighbour centres
     incident = np.bincount(tets.ravel(), minlength=model.n_nodes)[centre]
     assert incident.min() >= 12
-    assert 12 * n_cells * 0.99 <= len(tets) <= 12 * n_cells
+    assert len(tets) == 12 * n_cells
 
 
 def test_tet_variant_is_conforming():
