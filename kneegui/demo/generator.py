@@ -134,7 +134,8 @@ class DemoLeg:
     Attributes
     ----------
     model : Model
-        Nodes, hex solids and quad shells, one ``*PART`` per tissue (ids 7xxxxx).
+        Nodes, solids (hexahedra, or tetrahedra for the tet variants) and shells (quads, or
+        triangles on faces cut into tets), one ``*PART`` per tissue (ids 7xxxxx).
     setup : dict
         Roles and landmarks in the ``kneegui-setup`` format (version 1).
     design : DemoDesign
@@ -144,7 +145,9 @@ class DemoLeg:
     side : str
         ``"right"`` or ``"left"``.
     stats : dict
-        Element counts and the resolution factor.
+        Element counts and the resolution factor; for a variant also ``variant`` and
+        ``element_types``, and with tetrahedra ``tet_cells``, ``inverted_tets`` and the worst
+        tet measures (``tet_min_dihedral_deg``, ``tet_max_dihedral_deg``, ``tet_min_collapse``).
     """
 
     model: Model
