@@ -41,7 +41,7 @@ _HEX_FACES = np.array(SOLID_FACES["hex8"])  # outward from their cell
 TET_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
 #: HyperMesh collapse normalisation: height / sqrt(opposite face area) of the regular tet.
 #: A centre stops trying once its step has halved this often without a better position.
-MAX_HALVINGS = 4
+MAX_HALVINGS = 8
 _COLLAPSE_REGULAR = np.sqrt(2.0 / 3.0) / np.sqrt(np.sqrt(3.0) / 4.0)
 
 
@@ -249,7 +249,7 @@ def improve_centres(
     coords: FloatArray,
     tets: IntArray,
     movable: IntArray,
-    sweeps: int = 12,
+    sweeps: int = 20,
     active_below: float = 0.25,
 ) -> FloatArray:
     """Move the ``movable`` nodes (cell centres) to raise the worst mean ratio of their tets.
