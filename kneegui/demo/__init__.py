@@ -8,6 +8,9 @@ flesh, skin, cruciate and collateral ligaments, menisci, patellar tendon and kne
 - :func:`generate_demo_leg` builds it in memory (:class:`DemoLeg`: ``model``, ``setup``,
   ``design``).
 - :func:`write_demo` writes ``demo_leg.k`` and ``demo_leg.setup.json``.
+- Both take the variant options (:class:`Variant`): tetrahedral, mixed or 10-node tet meshes
+  (:mod:`kneegui.demo.tetmesh`), a welded joint (:mod:`kneegui.demo.welded`), the initial
+  flexion and the length unit.
 """
 
 from kneegui.demo.design import DemoDesign

@@ -7,10 +7,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from kneegui.demo import grid as g
-from kneegui.demo.design import DemoDesign
 from kneegui.demo import tetmesh
+from kneegui.demo.design import DemoDesign
 from kneegui.demo.layout import SHAFT_ASPECT, Layout, make_layout
 from kneegui.demo.repair import QualityTargets, repair_quality
 from kneegui.demo.sliding import detach_soft_tissue
@@ -30,6 +31,8 @@ UNITS = {"mm": 1.0, "m": 1e-3}
 FLEXION_RANGE_DEG = (0.0, 20.0)
 #: Shaft cell aspect of the variants with tetrahedra: a tet cut from a long cell is a sliver.
 TET_SHAFT_ASPECT = 3.0
+#: Repair passes at most (each grows its patch around the elements still failing).
+REPAIR_ROUNDS = 3
 
 
 @dataclass(frozen=True)
@@ -131,7 +134,8 @@ class DemoLeg:
     Attributes
     ----------
     model : Model
-        Nodes, hex solids and quad shells, one ``*PART`` per tissue (ids 7xxxxx).
+        Nodes, solids (hexahedra, or tetrahedra for the tet variants) and shells (quads, or
+        triangles on faces cut into tets), one ``*PART`` per tissue (ids 7xxxxx).
     setup : dict
         Roles and landmarks in the ``kneegui-setup`` format (version 1).
     design : DemoDesign
@@ -141,7 +145,9 @@ class DemoLeg:
     side : str
         ``"right"`` or ``"left"``.
     stats : dict
-        Element counts and the resolution factor.
+        Element counts and the resolution factor; for a variant also ``variant`` and
+        ``element_types``, and with tetrahedra ``tet_cells``, ``inverted_tets`` and the worst
+        tet measures (``tet_min_dihedral_deg``, ``tet_max_dihedral_deg``, ``tet_min_collapse``).
     """
 
     model: Model
@@ -313,7 +319,8 @@ def build_demo_leg(
 
     The grid is built and measured (:func:`quality_problems`); if an element misses a bound,
     the free flesh nodes around it are moved (:func:`repair_grid`) and the mesh is measured
-    again. A mesh that met the bounds as built is returned untouched.
+    again, up to :data:`REPAIR_ROUNDS` times. A mesh that met the bounds as built is returned
+    untouched.
 
     Parameters
     ----------
@@ -342,11 +349,15 @@ def build_demo_leg(
     leg = _assemble(grid, design, side, as_hex)
     problems = quality_problems(leg.model)
     moved = 0
-    if problems:
-        grid, moved = repair_grid(grid)
-        if moved:
-            leg = _assemble(grid, design, side, as_hex)
-            problems = quality_problems(leg.model)
+    for _ in range(REPAIR_ROUNDS):
+        if not problems:
+            break
+        grid, moved_now = repair_grid(grid)
+        if not moved_now:
+            break
+        moved += moved_now
+        leg = _assemble(grid, design, side, as_hex)
+        problems = quality_problems(leg.model)
     if variant != as_hex and not problems:
         leg = _assemble(grid, design, side, variant)
         inverted = leg.stats.get("inverted_tets", 0)
@@ -376,7 +387,10 @@ def repair_grid(grid: g.Grid) -> tuple[g.Grid, int]:
     return replace(grid, coords=coords), moved
 
 
-def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> DemoLeg:
+def _assemble(
+    grid: g.Grid, design: DemoDesign, side: str, variant: Variant | None = None
+) -> DemoLeg:
+    variant = variant or Variant()
     suffix = "R" if side == "right" else "L"
     labels = grid.cell_label
     solid_pid = np.zeros(len(labels), dtype=np.int64)
@@ -413,15 +427,39 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
     tri_pid = np.zeros(0, dtype=np.int64)
     tet_stats: dict[str, Any] = {}
     if variant.has_tets:
-        (grid_coords, hex_conn, hex_pid, tet_conn, tet_pid, quad_conn, quad_pid, tri_conn,
-         tri_pid, tet_stats) = _cut_tets(
-            grid_coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, role_pids["flesh"]
+        (
+            grid_coords,
+            hex_conn,
+            hex_pid,
+            tet_conn,
+            tet_pid,
+            quad_conn,
+            quad_pid,
+            tri_conn,
+            tri_pid,
+            tet_stats,
+        ) = _cut_tets(
+            grid_coords,
+            hex_conn,
+            hex_pid,
+            quad_conn,
+            quad_pid,
+            variant,
+            role_pids["flesh"],
+            _pinned_nodes(grid),
         )
 
-    blocks_in = [(hex_conn, hex_pid), (tet_conn, tet_pid), (quad_conn, quad_pid), (tri_conn, tri_pid)]
+    blocks_in = [
+        (hex_conn, hex_pid),
+        (tet_conn, tet_pid),
+        (quad_conn, quad_pid),
+        (tri_conn, tri_pid),
+    ]
     if variant.joint == "sliding":
         # soft tissue slides on the bones around the joint (see kneegui.demo.sliding)
-        sliding = role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
+        sliding = (
+            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
+        )
         for bones, soft, attached in (
             # the menisci slide under the femur but sit on the tibia; the flesh slides on both
             (role_pids["femur"], sliding + role_pids["meniscus"], []),
@@ -437,9 +475,7 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
         grid_coords, tet_conn = tetmesh.add_mid_edge_nodes(grid_coords, tet_conn)
         tet_type = "tet10"
 
-    used = np.unique(
-        np.concatenate([c.ravel() for c in (hex_conn, tet_conn, quad_conn, tri_conn)])
-    )
+    used = np.unique(np.concatenate([c.ravel() for c in (hex_conn, tet_conn, quad_conn, tri_conn)]))
     remap = np.full(len(grid_coords), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     coords = grid_coords[used].copy()
@@ -465,9 +501,10 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
         blocks[tet_type] = ElementBlock(
             tet_type, np.arange(n_hex + 1, n_solid + 1), tet_pid, tet_conn
         )
-    blocks["quad4"] = ElementBlock(
-        "quad4", np.arange(shell_start, shell_start + len(quad_conn)), quad_pid, quad_conn
-    )
+    if len(quad_conn) or not len(tri_conn):
+        blocks["quad4"] = ElementBlock(
+            "quad4", np.arange(shell_start, shell_start + len(quad_conn)), quad_pid, quad_conn
+        )
     if len(tri_conn):
         tri_start = shell_start + len(quad_conn)
         blocks["tri3"] = ElementBlock(
@@ -510,9 +547,20 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str, variant: Variant) -> 
     return DemoLeg(model, setup, design, grid.layout, side, stats)
 
 
-def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pids):
+def _pinned_nodes(grid: g.Grid) -> NDArray[np.bool_]:
+    """Lattice nodes the tet improvement must not move: on the two cuts or on a cavity cell."""
+    ix = g._Index(grid.layout)
+    layer = np.arange(len(grid.coords)) // ix.per_layer
+    pinned = (layer == 0) | (layer == grid.layout.nk)
+    pinned[grid.cell_conn[grid.cell_label == g.VOID].ravel()] = True
+    return pinned
+
+
+def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pids, pinned):
     """Cut the tet cells of the variant into a BCC tet mesh (:mod:`kneegui.demo.tetmesh`), move
-    the cell centres to the best worst quality, and split the shells on cut faces."""
+    the cell centres and the grid nodes inside one part (not on a shell, a part boundary, a cut or
+    the cavity: the anatomy stays as it is) to the best worst tet quality, and split the shells on
+    cut faces."""
     if variant.element_type == "mixed":
         is_tet = np.isin(hex_pid, flesh_pids)
     else:
@@ -520,7 +568,20 @@ def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pid
     # the part id is the label: BCC tets never cross a part boundary
     mesh = tetmesh.tetrahedralise(coords, hex_conn, hex_pid, is_tet, forced_split=quad_conn)
     centres = mesh.centre_of[mesh.centre_of >= 0]
-    new_coords = tetmesh.improve_centres(mesh.coords, mesh.tets, centres)
+    n = len(coords)
+    lowest = np.full(n, np.iinfo(np.int64).max)
+    highest = np.full(n, -1)
+    np.minimum.at(lowest, hex_conn.ravel(), np.repeat(hex_pid, 8))
+    np.maximum.at(highest, hex_conn.ravel(), np.repeat(hex_pid, 8))
+    free = (lowest == highest) & ~pinned
+    free[quad_conn.ravel()] = False  # shells keep their shape
+    in_tets = np.zeros(len(mesh.coords), dtype=bool)
+    in_tets[mesh.tets.ravel()] = True
+    in_hexes = np.zeros(len(mesh.coords), dtype=bool)
+    in_hexes[hex_conn[mesh.hex_rows].ravel()] = True
+    corners = np.flatnonzero(free & in_tets[: len(free)] & ~in_hexes[: len(free)])
+    movable = np.concatenate([centres, corners])
+    new_coords = tetmesh.improve_centres(mesh.coords, mesh.tets, movable)
     q = tetmesh.tet_quality(new_coords, mesh.tets)
     tet_pid = hex_pid[mesh.tet_cell]
     # shells on cut faces become the same two triangles

@@ -40,6 +40,8 @@ _HEX_FACES = np.array(SOLID_FACES["hex8"])  # outward from their cell
 #: The 6 tet edges as corner pairs, and the mid-edge order of a 10-node tet (topology.tet10).
 TET_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
 #: HyperMesh collapse normalisation: height / sqrt(opposite face area) of the regular tet.
+#: A centre stops trying once its step has halved this often without a better position.
+MAX_HALVINGS = 8
 _COLLAPSE_REGULAR = np.sqrt(2.0 / 3.0) / np.sqrt(np.sqrt(3.0) / 4.0)
 
 
@@ -138,12 +140,7 @@ def tetrahedralise(
     centres = coords[conn[tet_rows]].mean(axis=1)
 
     nb = np.maximum(nbr, 0)
-    bcc = (
-        is_tet[:, None]
-        & (nbr >= 0)
-        & is_tet[nb]
-        & (labels[nb] == labels[:, None])
-    )
+    bcc = is_tet[:, None] & (nbr >= 0) & is_tet[nb] & (labels[nb] == labels[:, None])
     if forced_split is not None and len(forced_split):
         forced = _rows_in(np.sort(faces.reshape(-1, 4), axis=1), np.sort(forced_split, axis=1))
         bcc &= ~forced.reshape(n_cells, 6)
@@ -162,10 +159,7 @@ def tetrahedralise(
     quad = faces[cell_b, face_b]  # outward from cell_b
     ca, cb = centre_of[cell_b], centre_of[nbr[cell_b, face_b]]
     bcc_tets = np.concatenate(
-        [
-            np.column_stack([quad[:, e], quad[:, (e + 1) % 4], ca, cb])
-            for e in range(4)
-        ]
+        [np.column_stack([quad[:, e], quad[:, (e + 1) % 4], ca, cb]) for e in range(4)]
     )
     bcc_cell = np.tile(cell_b, 4)
 
@@ -198,9 +192,10 @@ def _rows_in(rows: IntArray, table: IntArray) -> BoolArray:
 def signed_volumes(coords: FloatArray, tets: IntArray) -> FloatArray:
     """Signed volume of each tet (positive: topology tet4 orientation)."""
     p = coords[tets[:, :4]]
-    return np.einsum(
-        "ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]
-    ) / 6.0
+    return (
+        np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+        / 6.0
+    )
 
 
 def mean_ratio(p: FloatArray) -> FloatArray:
@@ -224,11 +219,11 @@ def tet_quality(coords: FloatArray, tets: IntArray) -> dict[str, FloatArray]:
     """
     p = coords[tets[:, :4]]
     vol = signed_volumes(coords, tets)
-    # outward-independent face normals: face i is opposite corner i
+    # outward unit normals of a positive tet: face i is opposite corner i
     opposite = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
     normals = []
     heights = []
-    for i, (a, b, c) in enumerate(opposite):
+    for a, b, c in opposite:
         n = np.cross(p[:, b] - p[:, a], p[:, c] - p[:, a])
         area2 = np.linalg.norm(n, axis=1)
         normals.append(n / np.maximum(area2, 1e-300)[:, None])
@@ -254,7 +249,7 @@ def improve_centres(
     coords: FloatArray,
     tets: IntArray,
     movable: IntArray,
-    sweeps: int = 12,
+    sweeps: int = 20,
     active_below: float = 0.25,
 ) -> FloatArray:
     """Move the ``movable`` nodes (cell centres) to raise the worst mean ratio of their tets.
@@ -320,9 +315,13 @@ def improve_centres(
         [np.choose(corner, [st_conn[..., opposite[k][m]] for k in range(4)]) for m in range(3)],
         axis=-1,
     )  # (c, w, 3)
+    min_step = step / 2.0**MAX_HALVINGS
     for _ in range(sweeps):
         for c in range(colour.max() + 1):
-            sel = np.flatnonzero(colour == c)
+            # a node whose step has halved MAX_HALVINGS times found nothing better: it is done
+            sel = np.flatnonzero((colour == c) & (step > min_step))
+            if len(sel) == 0:
+                continue
             node = movable[sel]
             valid = st_valid[sel]
             base = out[base_nodes[sel]]  # (s, w, 3, 3)
@@ -363,9 +362,7 @@ def _apex_quality(base: FloatArray, apex: FloatArray) -> FloatArray:
     bsq = sum(np.einsum("swj,swj->sw", u, u) for u in (b0, b1, b2))
     apex_sq = np.einsum("stj,stj->st", apex, apex)
     apex_l2 = (
-        3.0 * apex_sq[:, :, None]
-        - 2.0 * np.einsum("stj,swj->stw", apex, bsum)
-        + bsq[:, None, :]
+        3.0 * apex_sq[:, :, None] - 2.0 * np.einsum("stj,swj->stw", apex, bsum) + bsq[:, None, :]
     )
     l2 = (base_l2[:, None, :] + apex_l2) / 6.0
     return 6.0 * np.sqrt(2.0) * vol / np.maximum(l2, 1e-300) ** 1.5
