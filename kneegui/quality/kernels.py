@@ -433,40 +433,49 @@ def tet_shape_measures(p: Sequence[Vec], six_volume: Arr, edge_sq: Sequence[Arr]
     n0 = _cross(p[2] - p[1], p[3] - p[1])
     n2 = _cross(a, c)
     n3 = _cross(b, a)
-    n1 = -(n0 + n2 + n3)
+    n1 = n0 + n2
+    n1 += n3
+    np.negative(n1, out=n1)
     normals = (n0, n1, n2, n3)
-    twice_area = [np.sqrt(_sq(n)) for n in normals]
-    largest = np.maximum(
-        np.maximum(twice_area[0], twice_area[1]), np.maximum(twice_area[2], twice_area[3])
-    )
-    smallest = np.minimum(
-        np.minimum(twice_area[0], twice_area[1]), np.minimum(twice_area[2], twice_area[3])
-    )
+    area_sq = [_sq(n) for n in normals]
+    largest_sq = np.maximum(np.maximum(area_sq[0], area_sq[1]), np.maximum(area_sq[2], area_sq[3]))
+    smallest_sq = np.minimum(np.minimum(area_sq[0], area_sq[1]), np.minimum(area_sq[2], area_sq[3]))
+    largest = np.sqrt(largest_sq)
     # h_i / sqrt(A_i) = sqrt(2) 6V / |n_i|^1.5: smallest at the largest face
     collapse = np.zeros_like(six_volume)
-    ok = largest > 0.0
-    collapse[ok] = (np.sqrt(2.0) / TET_COLLAPSE_NORM) * six_volume[ok] / largest[ok] ** 1.5
-    # interior dihedral angle along the edge two faces share: cos = -(u_a . u_b)
-    units = []
-    for n, length in zip(normals, twice_area, strict=True):
-        inv = np.zeros_like(length)
-        np.divide(1.0, length, out=inv, where=length > 0.0)
-        units.append(n * inv)
+    np.divide(
+        (np.sqrt(2.0) / TET_COLLAPSE_NORM) * six_volume,
+        largest * np.sqrt(largest),
+        out=collapse,
+        where=largest > 0.0,
+    )
+    # interior dihedral angle along the edge two faces share: cos = -(n_a . n_b) / |n_a| |n_b|
+    inv = [np.zeros_like(six_volume) for _ in normals]
+    for k in range(4):
+        np.divide(1.0, np.sqrt(area_sq[k]), out=inv[k], where=area_sq[k] > 0.0)
     cos_hi = np.full_like(six_volume, -1.0)
     cos_lo = np.full_like(six_volume, 1.0)
     for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
-        cos = -_dot(units[i], units[j])
+        cos = _dot(normals[i], normals[j])
+        cos *= inv[i]
+        cos *= inv[j]
+        np.negative(cos, out=cos)
         np.maximum(cos_hi, cos, out=cos_hi)
         np.minimum(cos_lo, cos, out=cos_lo)
-    flat_face = smallest <= 0.0
-    cos_hi[flat_face], cos_lo[flat_face] = 1.0, -1.0
+    flat_face = smallest_sq <= 0.0
+    np.copyto(cos_hi, 1.0, where=flat_face)
+    np.copyto(cos_lo, -1.0, where=flat_face)
     # circumsphere: centre - p0 = (|a|^2 (b x c) + |b|^2 (c x a) + |c|^2 (a x b)) / (2 * 6V),
     # with b x c = -n1, c x a = -n2, a x b = -n3; V / V_ideal = (3 sqrt(3) / 2) 6V |6V|^3 / |num|^3
-    num = _sq(a) * n1 + _sq(b) * n2 + _sq(c) * n3
-    num_cubed = _sq(num) ** 1.5
+    num = _sq(a) * n1
+    num += _sq(b) * n2
+    num += _sq(c) * n3
+    num_sq = _sq(num)
+    num_cubed = num_sq * np.sqrt(num_sq)
+    abs_volume = np.abs(six_volume)
     ratio = np.zeros_like(six_volume)
     np.divide(
-        (1.5 * np.sqrt(3.0)) * six_volume * np.abs(six_volume) ** 3,
+        (1.5 * np.sqrt(3.0)) * six_volume * abs_volume * abs_volume * abs_volume,
         num_cubed,
         out=ratio,
         where=num_cubed > 0.0,
@@ -475,9 +484,11 @@ def tet_shape_measures(p: Sequence[Vec], six_volume: Arr, edge_sq: Sequence[Arr]
     for s in edge_sq[1:]:
         longest_sq = np.maximum(longest_sq, s)
     tet_aspect = np.full_like(six_volume, np.inf)
-    solid = six_volume != 0.0
-    tet_aspect[solid] = (
-        np.sqrt(longest_sq[solid]) * largest[solid] / (np.abs(six_volume[solid]) * TET_ASPECT_NORM)
+    np.divide(
+        np.sqrt(longest_sq) * largest,
+        abs_volume * TET_ASPECT_NORM,
+        out=tet_aspect,
+        where=abs_volume > 0.0,
     )
     return {
         "tet_collapse": collapse,
