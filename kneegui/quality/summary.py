@@ -339,6 +339,9 @@ def format_quality_table(
 #: the initial angle (nodes moved by ~1e-7 mm change the ratio by ~1e-11), nothing an analyst
 #: could see in a three-decimal table.
 GATE_JACOBIAN_TOLERANCE = 1e-6
+#: The tet measures the gate holds to the initial model's worst (all of them: issue 23 asks
+#: that no tet measure end worse than the initial model's).
+GATED_TET_METRICS: tuple[str, ...] = TET_THRESHOLD_METRICS
 
 
 def quality_gate(summary: Mapping) -> list[str]:
@@ -364,7 +367,7 @@ def quality_gate(summary: Mapping) -> list[str]:
             f"worst Jacobian {j['worst']:.3f} is below the initial model's {j['initial_worst']:.3f}"
         )
     directions = summary.get("thresholds", {}).get("*", {})
-    for m in TET_THRESHOLD_METRICS:
+    for m in GATED_TET_METRICS:
         e = group.get(m)
         if e is None or e["worst"] is None or e.get("initial_worst") is None or m not in directions:
             continue
