@@ -61,17 +61,17 @@ def heatmap_metrics(model: Model | None) -> list[str]:
     """The heat-map metrics that say something on ``model``, most telling first.
 
     A tet's corner Jacobian is 1 by definition, so the Jacobian is offered only with hexes,
-    wedges, pyramids or quad shells (and then first); the tet measures only with tets (first
-    on a model whose solids are all tets); warpage only where there are quad faces; volume
-    change with solids, area change with shells.
+    wedges, pyramids or quad shells; the tet measures only with tets. On a model whose solids
+    are all tets the tet measures come first, otherwise the Jacobian does. Warpage needs quad
+    faces; volume change is offered with solids, area change with shells.
     """
     types = {t for t, b in model.blocks.items() if len(b)} if model is not None else set()
     tets = bool(types & {"tet4", "tet10"})
     other_solids = bool(types & {"hex8", "wedge6", "pyramid5"})
     quads = other_solids or "quad4" in types
-    tet_keys = [*TET_HEATMAPS, *(["midside_tangent"] if "tet10" in types else [])]
-    keys = ["jacobian"] if quads else []
-    keys = (tet_keys + keys) if tets and not other_solids else keys + (tet_keys if tets else [])
+    jacobian = ["jacobian"] if quads else []
+    tet_keys = [*TET_HEATMAPS, *(["midside_tangent"] if "tet10" in types else [])] if tets else []
+    keys = tet_keys + jacobian if tets and not other_solids else jacobian + tet_keys
     keys += ["aspect", *(["warpage"] if quads else []), "skew"]
     if tets or other_solids:
         keys.append("volume_change")
