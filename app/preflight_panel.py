@@ -60,7 +60,7 @@ class PreflightPanel(QWidget):
         self.show_locked = QCheckBox("Show locked elements in the view")
         self.show_locked.setChecked(True)
         layout.addWidget(self.show_locked)
-        layout.addWidget(QLabel("Locked elements: id, segments, valid flexion (double-click)"))
+        layout.addWidget(QLabel("Locked elements (double-click to zoom)"))
         self.locked_list = QListWidget()
         layout.addWidget(self.locked_list, 1)
         self.locked_list.itemDoubleClicked.connect(

@@ -52,7 +52,7 @@ def test_locked_elements_are_listed_drawn_and_zoomed_to(welded_window, qtbot):
     # each row gives the flexion at which the element inverts
     first = texts[0]
     k = int(np.flatnonzero(pre.locked.ids == int(first.split()[0]))[0])
-    assert f"to {pre.locked.inverts_above_deg[k]:.1f} deg" in first
+    assert f"inverts at {pre.locked.inverts_above_deg[k]:.1f} deg" in first
     assert f"Locked elements: {len(pre.locked)}" in panel.summary.text()
     assert "Movable region:" in panel.summary.text()
     # drawn in their own colour: exactly the locked cells
