@@ -35,6 +35,7 @@ import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -150,14 +151,14 @@ class Preflight:
     node_ids: NDArray[np.int64] = field(repr=False)
     part_titles: dict[int, str] = field(repr=False)
     seconds: float = 0.0
-    _locked_keys: dict[tuple[str, int], int] = field(default_factory=dict, repr=False)
 
-    def __post_init__(self) -> None:
-        keys = {
+    @cached_property
+    def _locked_keys(self) -> dict[tuple[str, int], int]:
+        """(element type, block row) -> position in :attr:`locked`."""
+        return {
             (str(t), int(r)): k
             for k, (t, r) in enumerate(zip(self.locked.etype, self.locked.rows, strict=True))
         }
-        object.__setattr__(self, "_locked_keys", keys)
 
     # ---------------------------------------------------------------------- figures
     def valid_range_deg(self) -> tuple[float, float]:
