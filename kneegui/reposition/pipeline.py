@@ -233,7 +233,7 @@ def pose_model(
         "volume_change": _volume_change(final, final_q, initial_q, soft_parts),
         "gate": {"passed": not reasons, "reasons": reasons},
         "inverted": inverted,
-        "preflight": preflight.to_dict(),
+        "preflight": preflight.to_dict(pair_ids=False),
         "axis_sensitivity": None
         if repositioner.axes.sensitivity is None
         else repositioner.axes.sensitivity.to_dict(),

@@ -234,8 +234,10 @@ class Preflight:
         return out
 
     # ---------------------------------------------------------------------- output
-    def to_dict(self) -> dict[str, Any]:
-        """Every figure, with the full lists (JSON-ready: NaN limits are None)."""
+    def to_dict(self, pair_ids: bool = True) -> dict[str, Any]:
+        """Every figure, with the full lists (JSON-ready: NaN limits are None); ``pair_ids``
+        False leaves out the node ids of the coincident pairs (the pose report's choice:
+        tens of thousands on a large model, and the same for every pose)."""
         locked = self.locked
         lo, hi = self.valid_range_deg()
 
@@ -272,7 +274,7 @@ class Preflight:
                 "count": len(self.coincident_pairs),
                 "tolerance": float(self.coincident_tolerance),
                 "joins": self.coincident_joins,
-                "node_ids": self.node_ids[self.coincident_pairs].tolist(),
+                **({"node_ids": self.node_ids[self.coincident_pairs].tolist()} if pair_ids else {}),
             },
             "movable": {
                 "nodes": int(self.movable_nodes),
