@@ -256,3 +256,32 @@ def test_pose_report_has_the_axis_sensitivity(small_repositioner):
     assert report["axis_sensitivity"]["n_subsets"] > 0
     # the sliding demo: nothing locked, every inverted element (if any) movable
     assert report["inverted"]["locked"] == 0 and report["preflight"]["locked"]["count"] == 0
+
+
+def test_the_welded_demo_variant():
+    """``kneegui demo --joint welded`` (flesh, menisci and cruciates sharing nodes with both
+    bones): locked elements between femur and tibia, and every element the bones' motion
+    inverts at 90 deg among them with a limit below it."""
+    from kneegui import demo
+
+    leg = demo.generate_demo_leg(2000, joint="welded")
+    model = leg.model
+    repositioner = Repositioner(model, load_setup(leg.setup, model), RepositionOptions(relax=False))
+    pre = preflight_of(repositioner)
+    assert len(pre.locked) >= 20 and len(pre.coincident_pairs) == 0
+    assert ("femur", "tibia") in set(pre.locked.segments)
+    limits = {
+        (str(t), int(r)): a
+        for t, r, a in zip(
+            pre.locked.etype, pre.locked.rows, pre.locked.inverts_above_deg, strict=True
+        )
+    }
+    q = compute_quality(repositioner.pose(90.0), model.blocks)
+    rigid = [
+        (etype, row)
+        for etype in q
+        for row in q[etype].rows[q[etype].inverted].tolist()
+        if not pre.movable_rows[etype][row]
+    ]
+    assert len(rigid) >= 10
+    assert all(key in limits and limits[key] <= 90.0 + pre.resolution_deg for key in rigid)
