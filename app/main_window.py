@@ -27,6 +27,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.panels import FlexionPanel, LandmarkPanel, LigamentPanel, ModelPanel, QualityPanel
+from app.preflight_panel import LockedOverlay, PreflightPanel
 from app.qt_compat import protect_singletons
 from app.viewport import CAMERA_PRESETS, Viewport
 from app.workspace import ExportBlocked, Workspace
@@ -86,18 +87,23 @@ class MainWindow(QMainWindow):
         self.quality_panel = QualityPanel(self.ws)
         self.ligament_panel = LigamentPanel(self.ws)
         self.flexion_panel = FlexionPanel(self.ws)
+        self.preflight_panel = PreflightPanel(self.ws)
+        self.locked_overlay = LockedOverlay(self.viewport, self.preflight_panel)
         self.docks: dict[str, QDockWidget] = {}
         self._dock("Model", self.model_panel, Qt.DockWidgetArea.LeftDockWidgetArea)
         self._dock("Landmarks", self.landmark_panel, Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Quality", self.quality_panel, Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Ligaments", self.ligament_panel, Qt.DockWidgetArea.RightDockWidgetArea)
+        self._dock("Pre-flight", self.preflight_panel, Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Flexion", self.flexion_panel, Qt.DockWidgetArea.BottomDockWidgetArea)
         self.tabifyDockWidget(self.docks["Landmarks"], self.docks["Quality"])
         self.tabifyDockWidget(self.docks["Quality"], self.docks["Ligaments"])
+        self.tabifyDockWidget(self.docks["Ligaments"], self.docks["Pre-flight"])
         self.docks["Landmarks"].raise_()
         self._build_status()
         self._build_actions()
         self.quality_panel.zoom_requested.connect(self.viewport.zoom_to_element)
+        self.preflight_panel.zoom_requested.connect(self.viewport.zoom_to_element)
         self.ws.error.connect(self.show_error)
         self.ws.autosave_found.connect(self.offer_restore)
         self.ws.status.connect(lambda text: self.statusBar().showMessage(text, 8000))
@@ -369,6 +375,7 @@ class MainWindow(QMainWindow):
         self.save_layout()
         self.ws.close_deck()  # a normal close: only a crash leaves the autosave behind
         self.ws.shutdown(5000)
+        self.preflight_panel.shutdown(5000)
         self.viewport.plotter.close()
         super().closeEvent(event)
 

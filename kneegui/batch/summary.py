@@ -1,8 +1,9 @@
 """The batch summary: one row per posture (CSV and Markdown) and quality-vs-flexion plots.
 
 Every number is read from the posture's pose report; a column whose value the report does not
-carry stays empty (``inverted_locked`` / ``inverted_movable`` need the locked-element pre-flight,
-which pose reports do not have yet).
+carry stays empty (``inverted_locked`` / ``inverted_movable`` come from the report's
+``inverted`` split, :meth:`kneegui.reposition.preflight.Preflight.split_inverted`; a report
+written before the pre-flight check existed has none).
 """
 
 from __future__ import annotations

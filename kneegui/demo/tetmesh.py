@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.quality.kernels import tet4_quality
 from kneegui.topology import SOLID_FACES
 
 FloatArray = NDArray[np.float64]
@@ -39,10 +40,8 @@ BoolArray = NDArray[np.bool_]
 _HEX_FACES = np.array(SOLID_FACES["hex8"])  # outward from their cell
 #: The 6 tet edges as corner pairs, and the mid-edge order of a 10-node tet (topology.tet10).
 TET_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
-#: HyperMesh collapse normalisation: height / sqrt(opposite face area) of the regular tet.
 #: A centre stops trying once its step has halved this often without a better position.
 MAX_HALVINGS = 8
-_COLLAPSE_REGULAR = np.sqrt(2.0 / 3.0) / np.sqrt(np.sqrt(3.0) / 4.0)
 
 
 @dataclass(frozen=True)
@@ -210,38 +209,22 @@ def mean_ratio(p: FloatArray) -> FloatArray:
 def tet_quality(coords: FloatArray, tets: IntArray) -> dict[str, FloatArray]:
     """Shape measures of tets (the first 4 nodes of each row are the corners).
 
+    The measures are the quality package's (:func:`kneegui.quality.kernels.tet4_quality`), so
+    the demo's figures are the ones ``kneegui quality`` reports.
+
     Returns
     -------
     dict
         ``volume`` (signed), ``min_dihedral`` and ``max_dihedral`` (degrees, over the 6 edges),
-        ``collapse`` (HyperMesh: the smallest height over the square root of the opposite face's
-        area, divided by its value for the regular tet; 1 regular, 0 flat, negative inverted).
+        ``collapse`` (HyperMesh tet collapse: 1 regular, 0 flat, negative inverted).
     """
     p = coords[tets[:, :4]]
-    vol = signed_volumes(coords, tets)
-    # outward unit normals of a positive tet: face i is opposite corner i
-    opposite = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
-    normals = []
-    heights = []
-    for a, b, c in opposite:
-        n = np.cross(p[:, b] - p[:, a], p[:, c] - p[:, a])
-        area2 = np.linalg.norm(n, axis=1)
-        normals.append(n / np.maximum(area2, 1e-300)[:, None])
-        h = 3.0 * vol / np.maximum(0.5 * area2, 1e-300)
-        heights.append(h / np.sqrt(np.maximum(0.5 * area2, 1e-300)))
-    collapse = np.min(heights, axis=0) / _COLLAPSE_REGULAR
-    dihedral = []
-    for i in range(4):
-        for j in range(i + 1, 4):
-            # the faces opposite corners i and j meet at the edge of the two other corners
-            cosang = -np.einsum("ij,ij->i", normals[i], normals[j])
-            dihedral.append(np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))))
-    dih = np.array(dihedral)
+    q = tet4_quality([p[:, i].T for i in range(4)])
     return {
-        "volume": vol,
-        "min_dihedral": dih.min(axis=0),
-        "max_dihedral": dih.max(axis=0),
-        "collapse": collapse,
+        "volume": q["volume"],
+        "min_dihedral": q["dihedral_min"],
+        "max_dihedral": q["dihedral_max"],
+        "collapse": q["tet_collapse"],
     }
 
 

@@ -27,6 +27,7 @@ from kneegui.quality import (
 )
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE, BoneOverlap
+from kneegui.reposition.preflight import Preflight, preflight_of
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
 from kneegui.topology import SOLID_TYPES
 
@@ -107,6 +108,47 @@ def pose_warnings(
     return warnings + tissue_in_bones_warnings(in_bones)
 
 
+#: Element ids a gate reason or warning names before "and N more" (the report lists them all).
+NAMED_IDS = 12
+
+
+def _id_list(ids: list[int]) -> str:
+    shown = ", ".join(str(i) for i in ids[:NAMED_IDS])
+    return shown + (f" and {len(ids) - NAMED_IDS} more" if len(ids) > NAMED_IDS else "")
+
+
+def split_gate_reasons(reasons: list[str], inverted: dict[str, Any]) -> list[str]:
+    """The gate's reasons with its inverted-element count split into movable elements (the
+    repositioner's to fix) and locked ones (tied to bones the kinematics move apart), each
+    named by id (:meth:`Preflight.split_inverted`)."""
+    if not inverted["total"]:
+        return reasons
+    split = [
+        f"{inverted[key]} {label} ({_id_list(inverted[f'{key}_ids'])})"
+        for key, label in (
+            ("movable", "movable"),
+            ("locked", "locked between segments"),
+            ("other", "rigid with one segment"),
+        )
+        if inverted[key]
+    ]
+    head = f"{inverted['total']} inverted element(s)"
+    return [f"{head}: {', '.join(split)}" if r == head else r for r in reasons]
+
+
+def locked_inverted_warning(inverted: dict[str, Any], preflight: Preflight) -> list[str]:
+    """The warning for locked elements a pose inverts: not the repositioner's failure (no stage
+    may move their nodes), named with the flexion range the pre-flight check found valid."""
+    if not inverted["locked"]:
+        return []
+    lo, hi = preflight.valid_range_deg()
+    return [
+        f"{inverted['locked']} locked element(s) inverted (every node tied to bones the "
+        f"kinematics move apart; ids {_id_list(inverted['locked_ids'])}); the pre-flight check "
+        f"finds every locked element valid only from {lo:.1f} to {hi:.1f} deg"
+    ]
+
+
 def pose_model(
     repositioner: Repositioner,
     flexion_deg: float,
@@ -176,12 +218,18 @@ def pose_model(
         final_q = compute_quality(final.coords, final.blocks)
         quality["smoothed"] = _stats(final, final_q)
     summary = summarize_quality(final, final_q, initial=initial_q)
-    reasons = quality_gate(summary)
+    t = time.perf_counter()
+    preflight = preflight_of(repositioner)  # run once per repositioner
+    timings["preflight"] = time.perf_counter() - t
+    inverted = preflight.split_inverted(final, final_q)
+    reasons = split_gate_reasons(quality_gate(summary), inverted)
     overlaps = repositioner.bone_overlap(result.bone_pose)
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
-    warnings = pose_warnings(overlaps, in_bones, repositioner.length_scale)
+    warnings = locked_inverted_warning(inverted, preflight) + pose_warnings(
+        overlaps, in_bones, repositioner.length_scale
+    )
     report = {
         "method": repositioner.options.method,
         "initial_flexion": repositioner.initial_flexion,
@@ -190,6 +238,11 @@ def pose_model(
         "quality": quality,
         "volume_change": _volume_change(final, final_q, initial_q, soft_parts),
         "gate": {"passed": not reasons, "reasons": reasons},
+        "inverted": inverted,
+        "preflight": preflight.to_dict(pair_ids=False),
+        "axis_sensitivity": None
+        if repositioner.axes.sensitivity is None
+        else repositioner.axes.sensitivity.to_dict(),
         "relaxation": None if relaxation is None else relaxation.to_dict(),
         "smoothing": None if smoothing is None else smoothing.to_dict(),
         "skin": None

@@ -37,7 +37,12 @@ def test_the_local_run_writes_one_deck_and_report_per_posture(reference_run):
     with open(out / "summary.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["posture"] for r in rows] == [e["id"] for e in manifest["postures"]]
-    assert rows[0]["inverted_locked"] == "" and rows[-1]["inverted"] == "58"
+    assert rows[-1]["inverted"] == "58"
+    for row, entry in zip(rows, manifest["postures"], strict=True):
+        # the sliding demo has no locked element: every inverted element has a movable node
+        report = json.loads((out / entry["id"] / "report.json").read_text())
+        assert row["inverted_locked"] == "0" == str(report["inverted"]["locked"])
+        assert row["inverted_movable"] == row["inverted"] == str(report["inverted"]["movable"])
     assert "| right/setup/flex_0 | gate-failed |" in (out / "summary.md").read_text()
     for side in ("right", "left"):
         assert (out / side / "quality_vs_flexion.png").read_bytes()[:4] == b"\x89PNG"
