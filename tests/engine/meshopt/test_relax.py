@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kneegui.geometry.transforms import RigidTransform
 from kneegui.meshopt.lbfgs import minimize_lbfgs
 from kneegui.meshopt.quality_optimiser import quality_aims
 from kneegui.model import ElementBlock
@@ -284,3 +285,50 @@ def test_free_midside_nodes_of_tet10_follow_their_edge():
     np.testing.assert_allclose(out[7], rest[7] + [0.5, 1.0, 1.5])  # edge 0-3
     np.testing.assert_allclose(out[4], rest[4])  # edge 0-1 not free: stays
     np.testing.assert_allclose(out[:4], moved[:4])
+
+
+def _box_surface(lo, hi) -> np.ndarray:
+    """(12, 3, 3) outward triangles of an axis-aligned box."""
+    from itertools import product
+
+    from scipy.spatial import ConvexHull
+
+    points = np.array(list(product(*zip(lo, hi, strict=True))), dtype=float)
+    hull = ConvexHull(points)
+    tris = points[hull.simplices]
+    centre = points.mean(axis=0)
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    flip = np.einsum("ij,ij->i", normal, tris.mean(axis=1) - centre) < 0
+    tris[flip] = tris[flip][:, [0, 2, 1]]
+    return tris
+
+
+def test_midside_nodes_inside_a_bone_go_back_to_its_surface():
+    """Contact holds a 10-node tet's corners out of a bone, but the straight edge between two
+    corners lying on a convex bone cuts into it: a free mid-side node inside the posed bone is
+    put back on its surface; the others and the corners stay."""
+    corners = np.array([[0.0, -1, 0], [0.0, 1, 0], [1, 0, 0], [0.5, 0, 1]])
+    edges = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
+    rest = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    block = ElementBlock("tet10", np.array([1]), np.array([1]), np.arange(10)[None, :])
+    bone = _box_surface((-10.0, -10.0, -10.0), (0.0, 10.0, 10.0))  # its face x = 0 outward
+    relax = ElasticRelaxation(
+        rest,
+        corner_tetrahedra({"tet10": block}),
+        np.arange(10),
+        bones={"femur": bone},
+        blocks={"tet10": block},
+    )
+    posed = rest.copy()
+    posed[4] = [-0.7, 0.1, 0.2]  # edge 0-1's mid-side node 0.7 deep in the bone
+    posed[5] += [0.1, 0.0, 0.0]
+    out = relax.midside_out_of_bones(posed, {"femur": RigidTransform.identity()})
+    np.testing.assert_allclose(out[4], [0.0, 0.1, 0.2], atol=1e-12)
+    np.testing.assert_array_equal(np.delete(out, 4, axis=0), np.delete(posed, 4, axis=0))
+    # the bone turned 90 deg about z: its face x = 0 is now y = 0, the bone on y < 0, so a
+    # node at y = -0.5 lies inside it and goes to its surface
+    turn = RigidTransform.about_axis([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 90.0)
+    posed = rest.copy()
+    posed[9] = [0.2, -0.5, 0.3]
+    out = relax.midside_out_of_bones(posed, {"femur": turn})
+    assert turn.inverse().apply(out[9:10])[0, 0] == pytest.approx(0.0, abs=1e-12)
