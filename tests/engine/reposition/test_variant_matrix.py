@@ -33,6 +33,9 @@ ANGLES = (0.0, 30.0, 60.0, 90.0, 120.0)
 #: Depth (mm of the model's own unit) beyond which a soft-tissue node counts as inside a bone:
 #: nodes of a sliding interface lie on the bone surface itself.
 IN_BONE_MM = 0.5
+#: How far above the initial model's worst corner Jacobian the export's worst must stay at
+#: 90 deg (the gate asks for no worse; this keeps its outcome off the last digits).
+GATE_MARGIN = 0.005
 #: Issue 23's bound on the 95th percentile of the soft solids' |volume change| at 90 deg.
 P95_LIMIT_PCT = 25.0
 
@@ -164,15 +167,11 @@ DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0)}
 #: Cells measured to miss a target, with what was measured (kept visible as expected failures
 #: until the engine reaches them; docs/repositioning.md, known limits).
 KNOWN_MISSES = {
-    ("hex-m", 90.0, "quality"): "worst corner Jacobian 0.32999 against the initial 0.33036 "
-    "(the same deck in mm: 0.338): near its threshold the gate still hinges on rounding",
     **{
         ("welded", angle, "export"): "the welded joint keeps movable elements inverted "
         "(coarse demo at 90 deg: 77, with 39 locked)"
         for angle in (60.0, 90.0, 120.0)
     },
-    ("hex-left", 90.0, "quality"): "worst corner Jacobian 0.3295 against the initial 0.3304 "
-    "(the right leg: 0.338)",
     ("welded", 90.0, "quality"): "worst corner Jacobian below zero (inverted elements)",
 }
 
@@ -200,9 +199,10 @@ def test_export_holds_on_variant(cells, name, angle):
 
 @pytest.mark.parametrize(("name", "angle"), list(_cells("quality", (90.0,))))
 def test_quality_at_90_no_worse_than_initial(cells, name, angle):
-    """The gate's measure: the worst element no worse than the initial model's worst."""
+    """The gate's measure, with a margin so that it cannot flip on rounding: the worst element
+    at least :data:`GATE_MARGIN` better than the initial model's worst."""
     cell = cells(name, angle)
-    assert cell.worst_jacobian >= cell.initial_worst_jacobian, cell
+    assert cell.worst_jacobian >= cell.initial_worst_jacobian + GATE_MARGIN, cell
 
 
 def test_length_options_scale_with_the_model(repositioners):
