@@ -310,7 +310,7 @@ def test_smooth_and_export_match_the_engine(demo_window, qtbot, tmp_path):
     messages = []
     ws.status.connect(messages.append)
     demo_window.guard(ws.smooth)
-    assert ws.tasks.busy or ws.smoothed
+    assert ws.preview_pending or ws.smoothed
     wait_idle(qtbot, ws, timeout=150)
     assert demo_window.last_error is None, demo_window.last_error
     assert ws.smoothed
@@ -361,7 +361,7 @@ def test_inverted_elements_block_export_unless_forced(demo_window, qtbot, tmp_pa
     block = next(b for e, b in ws.model.blocks.items() if e == "hex8")
     row = block.conn[0]
     coords[row[4:]] = coords[row[:4]] - (coords[row[4:]] - coords[row[:4]])  # flip one hex
-    ws.set_coords(coords, smoothed=False)
+    ws.set_coords(coords)
     assert ws.quality().n_inverted >= 1
     out = tmp_path / "inverted.k"
     demo_window._export_target = str(out)
