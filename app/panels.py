@@ -612,6 +612,7 @@ class ViewIndicator(QLabel):
         ws.model_changed.connect(self.refresh)
         ws.poser_changed.connect(self.refresh)
         ws.preview.changed.connect(self.refresh)
+        ws.live_idle.connect(self.refresh)  # the last live pose of a drag: its figures
         self.refresh()
 
     def _on_coords(self) -> None:

@@ -58,7 +58,9 @@ def status_line(report: Mapping[str, Any]) -> str:
             f"{relax['seconds']:.1f} s)"
         )
     smooth = report.get("smoothing")
-    if smooth is not None:
+    if smooth is not None and not smooth["moved_nodes"]:
+        parts.append("smoothed: nothing to move")  # no Jacobian before / after to quote
+    elif smooth is not None:
         parts.append(
             f"smoothed: {smooth['moved_nodes']} nodes moved, worst Jacobian "
             f"{smooth['worst_jacobian_before']:.3f} -> {smooth['worst_jacobian_after']:.3f}, "

@@ -92,7 +92,8 @@ def test_rest_shows_the_export_as_the_cli_writes_it_and_export_does_not_solve_ag
     shown = []
     ws.coords_changed.connect(lambda: shown.append((ws.flexion, ws.view_kind)))
     demo_window.flexion_panel.slider.setValue(900)
-    assert indicator.text().startswith("LIVE MAPPING · moving")
+    # the banner changes with the view: to the live mapping when its first pose is drawn
+    qtbot.waitUntil(lambda: indicator.text().startswith("LIVE MAPPING"), timeout=10000)
     wait_idle(qtbot, ws, timeout=300)
     assert demo_window.last_error is None, demo_window.last_error
     # the live pose first, then the export of the resting angle
@@ -204,3 +205,19 @@ def test_file_open_with_progress_recent_decks_and_title(window, qtbot, leg_files
     assert str(bad) not in window.recent_files()
     assert window.windowTitle().startswith(deck.name)
     assert not window.open_progress.isVisible()
+
+
+def test_status_line_of_an_export_whose_smoother_had_nothing_to_move():
+    report = {
+        "relaxation": None,
+        "smoothing": {
+            "moved_nodes": 0,
+            "worst_jacobian_before": None,
+            "worst_jacobian_after": None,
+            "inverted_before": 0,
+            "inverted_after": 0,
+            "seconds": 0.001,
+        },
+        "warnings": [],
+    }
+    assert app.smoothing.status_line(report) == "smoothed: nothing to move"

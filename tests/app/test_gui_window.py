@@ -100,11 +100,22 @@ def test_slider_reposes_live_points_in_place(demo_window, qtbot):
     assert ws.flexion == 90.0
     np.testing.assert_allclose(ws.coords, ws.poser.pose(90.0))
     assert measure_flexion(ws.coords, ws.setup) == pytest.approx(90.0, abs=0.2)
+    hidden = set(ws.hidden_parts)
+    assert hidden  # skin and flesh start hidden: their points do not follow the slider
     for pid, surf in vp.surfaces.items():
         assert surf.mesh is meshes[pid]
         pts = vtk_to_numpy(surf.mesh.GetPoints().GetData())
         assert np.shares_memory(pts, buffers[pid])
-        np.testing.assert_array_equal(pts, ws.coords[surf.model_index])
+        if pid not in hidden:
+            np.testing.assert_array_equal(pts, ws.coords[surf.model_index])
+    for pid in hidden:  # shown, a part is brought up to date
+        ws.set_part_visible(pid, True)
+    vp.flush()
+    for pid in hidden:
+        pts = vtk_to_numpy(vp.surfaces[pid].mesh.GetPoints().GetData())
+        np.testing.assert_array_equal(pts, ws.coords[vp.surfaces[pid].model_index])
+        ws.set_part_visible(pid, False)
+    vp.flush()
     assert demo_window.flexion_panel.spin.value() == pytest.approx(90.0)
     demo_window.flexion_panel.spin.setValue(45.0)
     assert ws.flexion == 45.0 and slider.value() == 450
