@@ -189,6 +189,7 @@ class ExportPreview(QObject):
         #: why the last export of the current pose failed ('' when it did not)
         self.error = ""
         self._pending = False
+        self._curve_pending = False
         self._explicit = False
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
@@ -200,7 +201,7 @@ class ExportPreview(QObject):
     @property
     def busy(self) -> bool:
         """Whether an export or the curve is running, waiting to start or waiting for rest."""
-        return self.tasks.busy or self._pending or self._timer.isActive()
+        return self.tasks.busy or self._pending or self._curve_pending or self._timer.isActive()
 
     # ------------------------------------------------------------------ scheduling
     def pose_requested(self, schedule: bool) -> None:
@@ -223,7 +224,7 @@ class ExportPreview(QObject):
     def reset(self) -> None:
         """A new model or poser: forget the curve and the exported points."""
         self._timer.stop()
-        self._pending = False
+        self._pending = self._curve_pending = False
         self.tasks.cancel()
         self.live_curve = None
         self.exported_points.clear()
@@ -291,14 +292,17 @@ class ExportPreview(QObject):
         return True
 
     def start_curve(self) -> bool:
-        """Sample the live mapping's figures over the validated range (worker thread)."""
+        """Sample the live mapping's figures over the validated range (worker thread; after the
+        running task when one runs)."""
         from app.workspace import FLEXION_RANGE
 
         ws = self._ws
         if ws.poser is None or ws.model is None or ws.evaluator is None:
             return False
         if self.tasks.busy:
+            self._curve_pending = True
             return False
+        self._curve_pending = False
         poser, model, evaluator = ws.poser, ws.model, ws.evaluator
         initial = ws.initial_quality
         lo, hi = FLEXION_RANGE
@@ -328,5 +332,7 @@ class ExportPreview(QObject):
         QTimer.singleShot(0, self._after_task)
 
     def _after_task(self) -> None:
-        if self._pending and not self.tasks.busy:
+        if self._curve_pending and not self.tasks.busy:
+            self.start_curve()
+        elif self._pending and not self.tasks.busy:
             self.start()

@@ -83,7 +83,8 @@ def test_rest_shows_the_export_as_the_cli_writes_it_and_export_does_not_solve_ag
     assert live.inverted == summary["inverted"] > 0
     assert live.worst_jacobian == summary["jacobian"]["worst"]
     assert live.max_volume_change_pct == summary["volume_change"]["max_element_pct"]
-    assert indicator.text().startswith(f"LIVE MAPPING · 90.0° · inverted {live.inverted} ·")
+    expected = f"LIVE MAPPING · 90.0° · inverted {live.inverted} ·"
+    qtbot.waitUntil(lambda: indicator.text().startswith(expected), timeout=5000)
     # back to the initial angle, then the export at rest on, and a move to 90 deg
     demo_window.flexion_panel.spin.setValue(ws.poser.initial_flexion)
     demo_window.set_rest_export(True)
