@@ -47,7 +47,8 @@ ORGANIZATION = "kneegui"
 APPLICATION = "kneegui-gui"
 MAX_RECENT = 8
 DECK_FILTER = "LS-DYNA decks (*.k *.key *.dyn);;All files (*)"
-#: The tasks of opening a deck, followed in the open-progress dialog.
+#: The tasks of opening a deck, followed in the open-progress dialog (the second one only
+#: right after the first: it also runs after every setup edit, without a dialog).
 OPEN_TASKS = ("Opening deck", "Preparing the repositioner")
 
 
@@ -131,6 +132,7 @@ class MainWindow(QMainWindow):
         self.ws.model_changed.connect(self._on_model_opened)
         self.ws.dirty_changed.connect(self.setWindowModified)
         self.open_progress: QProgressDialog | None = None
+        self._opening = False
         self.resize(1500, 920)
         self._restore_layout()
 
@@ -415,7 +417,8 @@ class MainWindow(QMainWindow):
 
     # ------------------------------------------------------------------ tasks
     def _task_started(self, name: str) -> None:
-        if name in OPEN_TASKS:
+        if name == OPEN_TASKS[0] or (name in OPEN_TASKS and self._opening):
+            self._opening = True
             self._show_open_progress(name)
         self.task_label.setText(name)
         self.progress.setValue(0)
@@ -437,6 +440,7 @@ class MainWindow(QMainWindow):
             return
         for w in (self.task_label, self.progress, self.cancel_button):
             w.setVisible(False)
+        self._opening = False
         if self.open_progress is not None:
             self.open_progress.hide()
 

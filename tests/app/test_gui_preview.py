@@ -194,6 +194,8 @@ def test_file_open_with_progress_recent_decks_and_title(window, qtbot, leg_files
     lateral = ws.condyle_ids("lateral_condyle")
     ws.remove_condyle_ids("lateral_condyle", lateral[:1])
     assert window.isWindowModified()  # the title shows '*'
+    assert ws.tasks.busy  # the repositioner is rebuilt for the edit, without the dialog
+    assert not window.open_progress.isVisible()
     ws.save_setup(tmp_path / "saved.setup.json")
     assert not window.isWindowModified()
     wait_idle(qtbot, ws)
