@@ -386,8 +386,7 @@ class QualityPanel(QWidget):
         self.mode.addItem("Ligament stretch", "stretch")
         form.addRow("Colour by", self.mode)
         self.metric = QComboBox()
-        for key, (label, _, _) in HEATMAP_METRICS.items():
-            self.metric.addItem(label, key)
+        self._fill_metrics()
         form.addRow("Metric", self.metric)
         row = QHBoxLayout()
         self.threshold_on = QCheckBox()
@@ -436,6 +435,7 @@ class QualityPanel(QWidget):
         self.clip_offset.valueChanged.connect(self._on_clip)
         ws.display_changed.connect(self._on_display)
         ws.coords_changed.connect(self._schedule)
+        ws.model_changed.connect(self._fill_metrics)
         ws.model_changed.connect(self._schedule)
         from PySide6.QtCore import QTimer
 
@@ -443,6 +443,14 @@ class QualityPanel(QWidget):
         self._timer.setSingleShot(True)
         self._timer.setInterval(150)
         self._timer.timeout.connect(self.refresh)
+
+    def _fill_metrics(self) -> None:
+        """The metrics the model offers (tet measures with tets, the Jacobian with hexes)."""
+        with _blocked(self.metric):
+            self.metric.clear()
+            for key in self.ws.heatmap_metrics():
+                self.metric.addItem(HEATMAP_METRICS[key][0], key)
+            self.metric.setCurrentIndex(self.metric.findData(self.ws.metric))
 
     def _on_threshold(self, *_args) -> None:
         self.ws.set_threshold(self.threshold.value() if self.threshold_on.isChecked() else None)
@@ -485,10 +493,16 @@ class QualityPanel(QWidget):
         finite = values[np.isfinite(values)]
         label = HEATMAP_METRICS[ws.metric][0]
         if len(finite):
+            offered = ws.heatmap_metrics()
+            worst = []
+            if "tet_collapse" in offered:
+                worst.append(f"worst tet collapse {np.nanmin(q.concatenated('tet_collapse')):.3f}")
+            if "jacobian" in offered:
+                worst.append(f"worst Jacobian {q.worst_jacobian():.3f}")
             self.stats.setText(
-                f"{q.n_elements} measured · inverted {q.n_inverted} · worst Jacobian "
-                f"{q.worst_jacobian():.3f}\n{label}: min {finite.min():.3g}, "
-                f"mean {finite.mean():.3g}, max {finite.max():.3g}"
+                f"{q.n_elements} measured · inverted {q.n_inverted} · {' · '.join(worst)}\n"
+                f"{label}: min {finite.min():.3g}, mean {finite.mean():.3g}, "
+                f"max {finite.max():.3g}"
             )
         self.worst.clear()
         for cell, eid, part, value in ws.worst_elements(ws.metric, 25):

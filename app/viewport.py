@@ -736,8 +736,15 @@ def _polylines(chains: list[NDArray[np.float64]]) -> pv.PolyData:
 
 def _quality_clim(metric: str, values: NDArray[np.float64]) -> tuple[float, float]:
     finite = values[np.isfinite(values)]
-    if metric == "jacobian":
+    if metric in ("jacobian", "tet_collapse", "vol_skew"):
         return (0.0, 1.0)
+    regular_dihedral = float(np.degrees(np.arccos(1.0 / 3.0)))  # 70.53, the regular tet's
+    if metric == "dihedral_min":
+        return (0.0, regular_dihedral)
+    if metric == "dihedral_max":
+        return (regular_dihedral, 180.0)
+    if metric == "midside_tangent":
+        return (0.0, 0.25)
     if metric in ("warpage", "skew"):
         hi = float(np.percentile(finite, 99.5)) if len(finite) else 1.0
         return (0.0, max(hi, 1.0))

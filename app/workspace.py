@@ -34,18 +34,53 @@ from kneegui.model import Model
 from kneegui.quality import QualityEvaluator, QualityResult, volume_change_pct
 from kneegui.setup import ROLES, JointSetup, load_setup
 from kneegui.setup.kinematic_tables import VALIDATED_FLEXION_DEG
+from kneegui.topology import SOLID_TYPES
 
 #: Slider range (degrees): the engine's validated flexion range (see its definition for why
 #: it is narrower than the supported one).
 FLEXION_RANGE = VALIDATED_FLEXION_DEG
-#: Heat-map metrics: key -> (label, QualityResult metric name, "low is bad" flag).
+#: Heat-map metrics: key -> (label, QualityResult metric name, "low is bad" flag). Which of
+#: them a model offers, and in what order, is :func:`heatmap_metrics`.
 HEATMAP_METRICS: dict[str, tuple[str, str, bool]] = {
     "jacobian": ("Jacobian", "jacobian_corner", True),
+    "tet_collapse": ("Tet collapse", "tet_collapse", True),
+    "dihedral_min": ("Tet min dihedral (°)", "dihedral_min", True),
+    "dihedral_max": ("Tet max dihedral (°)", "dihedral_max", False),
+    "vol_skew": ("Tet volumetric skew", "vol_skew", False),
+    "midside_tangent": ("Tet10 mid-side offset", "midside_tangent", False),
     "aspect": ("Aspect ratio", "aspect", False),
     "warpage": ("Warpage (°)", "warpage", False),
     "skew": ("Skew (°)", "skew", False),
-    "volume_change": ("Volume change (%)", "volume_change", False),
+    "volume_change": ("Volume change, solids (%)", "volume_change", False),
+    "area_change": ("Area change, shells (%)", "area_change", False),
 }
+#: Heat-map metrics of tetrahedra only.
+TET_HEATMAPS = ("tet_collapse", "dihedral_min", "dihedral_max", "vol_skew")
+
+
+def heatmap_metrics(model: Model | None) -> list[str]:
+    """The heat-map metrics that say something on ``model``, most telling first.
+
+    A tet's corner Jacobian is 1 by definition, so the Jacobian is offered only with hexes,
+    wedges, pyramids or quad shells; the tet measures only with tets. On a model whose solids
+    are all tets the tet measures come first, otherwise the Jacobian does. Warpage needs quad
+    faces; volume change is offered with solids, area change with shells.
+    """
+    types = {t for t, b in model.blocks.items() if len(b)} if model is not None else set()
+    tets = bool(types & {"tet4", "tet10"})
+    other_solids = bool(types & {"hex8", "wedge6", "pyramid5"})
+    quads = other_solids or "quad4" in types
+    jacobian = ["jacobian"] if quads else []
+    tet_keys = [*TET_HEATMAPS, *(["midside_tangent"] if "tet10" in types else [])] if tets else []
+    keys = tet_keys + jacobian if tets and not other_solids else jacobian + tet_keys
+    keys += ["aspect", *(["warpage"] if quads else []), "skew"]
+    if tets or other_solids:
+        keys.append("volume_change")
+    if types & {"quad4", "tri3"}:
+        keys.append("area_change")
+    return keys
+
+
 #: Default threshold per metric (from resources/quality_thresholds.csv "warn" where it exists).
 CONDYLE_KEYS = ("lateral_condyle", "medial_condyle")
 AXIS_KEYS = ("lr_axis", "femur_axis", "tibia_axis")
@@ -162,6 +197,8 @@ class Workspace(QObject):
             setup_path = Path(setup)
             setup = read_setup_json(setup_path)
         self._leave_deck(deck_path)
+        # the user's heat-map choice is kept for the next deck; the default follows the model
+        chose_default = self.model is None or self.metric == heatmap_metrics(self.model)[0]
         self.model = model
         self.deck_path = None if deck_path is None else Path(deck_path)
         self.setup_path = None if setup_path is None else Path(setup_path)
@@ -174,6 +211,9 @@ class Workspace(QObject):
         self._set_dirty(False)
         self._evaluator = QualityEvaluator(model.blocks)
         self._initial_quality = self._evaluator.evaluate(model.coords)
+        offered = heatmap_metrics(model)
+        if offered and (self.metric not in offered or chose_default):
+            self.metric, self.threshold = offered[0], None  # a tet model opens on tet collapse
         self._quality = self._initial_quality
         self._pose_quality = None
         self._live_cells = None
@@ -722,7 +762,9 @@ class Workspace(QObject):
         Parameters
         ----------
         metric : str
-            A key of :data:`HEATMAP_METRICS`.
+            A key of :data:`HEATMAP_METRICS`. ``volume_change`` is measured on solids only and
+            ``area_change`` on shells only (percent against the initial pose); a tet measure
+            is NaN on other element types.
         cells : (k,) ndarray of int, optional
             Measure only these global cells (the others are NaN): what the view shows.
         """
@@ -752,11 +794,18 @@ class Workspace(QObject):
             if etype not in q:
                 continue
             part = q[etype]
+            solid = etype in SOLID_TYPES
+            if (metric == "volume_change" and not solid) or (metric == "area_change" and solid):
+                continue  # a solid's volume and a shell's area are different measures
+            if metric not in ("volume_change", "area_change") and not part.has(
+                HEATMAP_METRICS[metric][1]
+            ):
+                continue  # a tet measure on another element type
             if cells is not None and self._quality is not None:
                 values_rows = sel
             else:
                 values_rows = np.arange(len(part)) if cells is not None else sel
-            if metric == "volume_change":
+            if metric in ("volume_change", "area_change"):
                 v0 = self._initial_quality[etype].volume[sel]
                 v = part.volume[values_rows]
                 vals = volume_change_pct(v, v0)
@@ -807,6 +856,10 @@ class Workspace(QObject):
         if mode != self.colour_mode:
             self.colour_mode = mode
             self.display_changed.emit("colour")
+
+    def heatmap_metrics(self) -> list[str]:
+        """The heat-map metrics the current model offers (:func:`heatmap_metrics`)."""
+        return heatmap_metrics(self.model)
 
     def set_metric(self, metric: str) -> None:
         if metric not in HEATMAP_METRICS:

@@ -117,6 +117,11 @@ def run(args: argparse.Namespace) -> int:
             f"{final['jacobian']['worst']:.3f} (initial {q['initial']['jacobian']['worst']:.3f})"
             f", inverted {final['inverted']}"
         )
+        if final.get("tet_collapse", {}).get("worst") is not None:
+            line += (
+                f", worst tet collapse {final['tet_collapse']['worst']:.3f} "
+                f"(initial {q['initial']['tet_collapse']['worst']:.3f})"
+            )
         for warning in report["warnings"]:
             print(f"kneegui: warning: {deg:g} deg: {warning}", file=sys.stderr)
         if not posed.passes_gate:

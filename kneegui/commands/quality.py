@@ -18,7 +18,10 @@ from kneegui.quality import (
 from kneegui.topology import SOLID_TYPES
 
 NAME = "quality"
-HELP = "Print the mesh quality of a deck (Jacobian, aspect ratio, warpage, skew) like Table I."
+HELP = (
+    "Print the mesh quality of a deck (Jacobian, aspect ratio, warpage, skew; on tetrahedra also "
+    "tet collapse, dihedral angles, volumetric skew) like Table I."
+)
 
 EXIT_QUALITY_GATE = 3
 
@@ -40,12 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--gate",
         action="store_true",
         help="exit with code 3 if an element is inverted or (with --initial) the worst "
-        "Jacobian is below the initial model's",
+        "Jacobian, or on tetrahedra a worst tet measure, is worse than the initial model's",
     )
 
 
 def _part_lines(summary: dict) -> list[str]:
-    lines = ["", "Per part: worst J | worst aspect | worst warpage | worst skew | inverted"]
+    tets = "tet_collapse" in summary["metrics"]
+    header = "Per part: worst J | worst aspect | worst warpage | worst skew | inverted"
+    lines = ["", header + (" | worst tet collapse | min / max dihedral" if tets else "")]
     for pid, g in sorted(summary["parts"].items(), key=lambda kv: int(kv[0])):
         if not g["elements"]:
             continue
@@ -54,10 +59,15 @@ def _part_lines(summary: dict) -> list[str]:
             value = g[metric]["worst"]
             return "n/a" if value is None else f"{value:.{digits}f}"
 
-        lines.append(
+        line = (
             f"  {pid:>10} {g['title'][:32]:<32} {g['elements']:>8} el  J {w('jacobian', 3)}"
             f"  AR {w('aspect')}  W {w('warpage', 1)}  S {w('skew', 1)}  inv {g['inverted']}"
         )
+        if tets and g["tet_collapse"]["worst"] is not None:
+            line += (
+                f"  TC {w('tet_collapse', 3)}  DA {w('dihedral_min', 1)} / {w('dihedral_max', 1)}"
+            )
+        lines.append(line)
     return lines
 
 

@@ -1,7 +1,9 @@
 """Mesh quality: per-element metrics (QUALITY.md), statistics, thresholds and the quality table.
 
 - :func:`compute_quality` / :class:`QualityEvaluator`: per-element Jacobians (corner and Gauss),
-  aspect ratio, warpage, skew, signed volume and inverted masks.
+  aspect ratio, warpage, skew, signed volume and inverted masks; on tetrahedra also the tet
+  collapse, dihedral angles, volumetric skew and tet aspect ratio (10-node tets: mid-side
+  offsets), docs/quality.md.
 - :func:`summarize_quality`: worst / mean / std / warn / fail per model, part and role, and the
   change against the initial pose; :func:`format_quality_table` prints it like the paper's Table I.
 - :func:`load_thresholds`: the warn / fail table in ``resources/quality_thresholds.csv``.
@@ -13,6 +15,7 @@
 from kneegui.quality.metrics import (
     MEASURED_TYPES,
     METRICS,
+    TET_ONLY_METRICS,
     ElementQuality,
     QualityEvaluator,
     QualityResult,
@@ -24,8 +27,10 @@ from kneegui.quality.summary import (
     jsonable,
     quality_gate,
     summarize_quality,
+    summary_metrics,
 )
 from kneegui.quality.thresholds import (
+    TET_THRESHOLD_METRICS,
     THRESHOLD_METRICS,
     MetricThreshold,
     Thresholds,
@@ -37,6 +42,8 @@ from kneegui.quality.volume import volume_change, volume_change_pct
 __all__ = [
     "MEASURED_TYPES",
     "METRICS",
+    "TET_ONLY_METRICS",
+    "TET_THRESHOLD_METRICS",
     "THRESHOLD_METRICS",
     "ElementQuality",
     "MetricThreshold",
@@ -51,6 +58,7 @@ __all__ = [
     "load_thresholds",
     "quality_gate",
     "summarize_quality",
+    "summary_metrics",
     "volume_change",
     "volume_change_pct",
 ]

@@ -36,7 +36,13 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, hex_faces_parametric
+from kneegui.topology import (
+    CORNER_NODES,
+    CORNER_TRIPLES,
+    ELEMENT_EDGES,
+    NODES_PER_ELEMENT,
+    hex_faces_parametric,
+)
 
 Vec = NDArray[np.float64]  # (3, m) vectors, component-major
 Arr = NDArray[np.float64]  # (m,)
@@ -372,14 +378,137 @@ def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     return _result(acc, jac, jac.copy(), volume)
 
 
+#: h / sqrt(A) of the regular tetrahedron (height over the square root of the opposite face's
+#: area): sqrt(2/3) / sqrt(sqrt(3)/4) = 1.2408. HyperMesh's help rounds it to 1.24, OptiStruct's
+#: CTETRA check prints 1.2408; the exact value makes the regular tet's collapse exactly 1.
+TET_COLLAPSE_NORM = float(np.sqrt(2.0 / 3.0) / np.sqrt(np.sqrt(3.0) / 4.0))
+#: Altitude normalisation of the tet aspect ratio: the regular tet's longest edge / shortest
+#: altitude is sqrt(3/2), so ``tet_aspect`` = L_max / (h_min sqrt(3/2)) is 1 for it.
+TET_ASPECT_NORM = float(np.sqrt(1.5))
+#: The tetrahedral shape measures every tet kernel adds (definitions in docs/quality.md).
+TET_METRICS: tuple[str, ...] = (
+    "tet_collapse",
+    "dihedral_min",
+    "dihedral_max",
+    "vol_skew",
+    "tet_aspect",
+)
+#: The mid-side-node measures of a 10-node tet (OptiStruct's "hoe" offsets of a 3-node edge).
+TET10_METRICS: tuple[str, ...] = ("midside_normal", "midside_tangent")
+#: (corner, corner, mid-side node) of each edge of a 10-node tet, read off
+#: :data:`kneegui.topology.ELEMENT_EDGES` (which lists each edge as corner-mid, mid-corner).
+TET10_MIDSIDE: tuple[tuple[int, int, int], ...] = tuple(
+    (a, d, b)
+    for (a, b), (c, d) in zip(
+        ELEMENT_EDGES["tet10"][0::2], ELEMENT_EDGES["tet10"][1::2], strict=True
+    )
+    if b == c
+)
+
+
+def tet_shape_measures(p: Sequence[Vec], six_volume: Arr, edge_sq: Sequence[Arr]) -> dict[str, Arr]:
+    """The crash pre-processors' tetrahedron measures (docs/quality.md), vectorised.
+
+    Parameters
+    ----------
+    p : sequence of four (3, m) ndarray of float
+        Corner positions (triangle 0,1,2 counter-clockwise seen from 3 for a positive tet).
+    six_volume : (m,) ndarray of float
+        Six times the signed volume, ``(p1 - p0) x (p2 - p0) . (p3 - p0)``.
+    edge_sq : sequence of six (m,) ndarray of float
+        Squared lengths of the six edges (any order).
+
+    Returns
+    -------
+    dict of str to (m,) ndarray of float
+        ``tet_collapse``: min over the nodes of h_i / sqrt(A_i) / :data:`TET_COLLAPSE_NORM`
+        (1 regular, 0 flat, the sign of the volume); ``dihedral_min`` / ``dihedral_max``:
+        the smallest and largest of the six interior dihedral angles (degrees; a face of zero
+        area gives 0 / 180); ``vol_skew``: 1 - V / V_ideal with V_ideal the regular tet
+        inscribed in the circumsphere (0 regular, 1 flat, > 1 inverted); ``tet_aspect``: longest
+        edge / (shortest altitude x sqrt(3/2)) (1 regular, ``inf`` flat).
+    """
+    a, b, c = p[1] - p[0], p[2] - p[0], p[3] - p[0]
+    # outward area vectors (twice the face area) of the faces opposite nodes 0..3; they sum to 0
+    n0 = _cross(p[2] - p[1], p[3] - p[1])
+    n2 = _cross(a, c)
+    n3 = _cross(b, a)
+    n1 = n0 + n2
+    n1 += n3
+    np.negative(n1, out=n1)
+    normals = (n0, n1, n2, n3)
+    area_sq = [_sq(n) for n in normals]
+    largest_sq = np.maximum(np.maximum(area_sq[0], area_sq[1]), np.maximum(area_sq[2], area_sq[3]))
+    smallest_sq = np.minimum(np.minimum(area_sq[0], area_sq[1]), np.minimum(area_sq[2], area_sq[3]))
+    largest = np.sqrt(largest_sq)
+    # h_i / sqrt(A_i) = sqrt(2) 6V / |n_i|^1.5: smallest at the largest face
+    collapse = np.zeros_like(six_volume)
+    np.divide(
+        (np.sqrt(2.0) / TET_COLLAPSE_NORM) * six_volume,
+        largest * np.sqrt(largest),
+        out=collapse,
+        where=largest > 0.0,
+    )
+    # interior dihedral angle along the edge two faces share: cos = -(n_a . n_b) / |n_a| |n_b|
+    inv = [np.zeros_like(six_volume) for _ in normals]
+    for k in range(4):
+        np.divide(1.0, np.sqrt(area_sq[k]), out=inv[k], where=area_sq[k] > 0.0)
+    cos_hi = np.full_like(six_volume, -1.0)
+    cos_lo = np.full_like(six_volume, 1.0)
+    for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+        cos = _dot(normals[i], normals[j])
+        cos *= inv[i]
+        cos *= inv[j]
+        np.negative(cos, out=cos)
+        np.maximum(cos_hi, cos, out=cos_hi)
+        np.minimum(cos_lo, cos, out=cos_lo)
+    flat_face = smallest_sq <= 0.0
+    np.copyto(cos_hi, 1.0, where=flat_face)
+    np.copyto(cos_lo, -1.0, where=flat_face)
+    # circumsphere: centre - p0 = (|a|^2 (b x c) + |b|^2 (c x a) + |c|^2 (a x b)) / (2 * 6V),
+    # with b x c = -n1, c x a = -n2, a x b = -n3; V / V_ideal = (3 sqrt(3) / 2) 6V |6V|^3 / |num|^3
+    num = _sq(a) * n1
+    num += _sq(b) * n2
+    num += _sq(c) * n3
+    num_sq = _sq(num)
+    num_cubed = num_sq * np.sqrt(num_sq)
+    abs_volume = np.abs(six_volume)
+    ratio = np.zeros_like(six_volume)
+    np.divide(
+        (1.5 * np.sqrt(3.0)) * six_volume * abs_volume * abs_volume * abs_volume,
+        num_cubed,
+        out=ratio,
+        where=num_cubed > 0.0,
+    )
+    longest_sq = edge_sq[0]
+    for s in edge_sq[1:]:
+        longest_sq = np.maximum(longest_sq, s)
+    tet_aspect = np.full_like(six_volume, np.inf)
+    np.divide(
+        np.sqrt(longest_sq) * largest,
+        abs_volume * TET_ASPECT_NORM,
+        out=tet_aspect,
+        where=abs_volume > 0.0,
+    )
+    return {
+        "tet_collapse": collapse,
+        "dihedral_min": np.degrees(np.arccos(np.clip(cos_hi, -1.0, 1.0))),
+        "dihedral_max": np.degrees(np.arccos(np.clip(cos_lo, -1.0, 1.0))),
+        "vol_skew": 1.0 - ratio,
+        "tet_aspect": tet_aspect,
+    }
+
+
 def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     """Metrics of linear tetrahedra (triangle 0,1,2 counter-clockwise seen from apex 3).
 
-    The determinant is constant: both Jacobians are 1 for a positive volume, else -1.
+    The determinant is constant: both Jacobians are 1 for a positive volume, else -1. The
+    tetrahedral measures of :func:`tet_shape_measures` are added.
     """
     m = p[0].shape[1]
     e01, e02, e03 = p[1] - p[0], p[2] - p[0], p[3] - p[0]
-    volume = _triple(e01, e02, e03) / 6.0
+    six_volume = _triple(e01, e02, e03)
+    volume = six_volume / 6.0
     jac = np.where(volume > 0.0, 1.0, -1.0)
     s01, s02, s03 = _sq(e01), _sq(e02), _sq(e03)
     s12, s13, s23 = _sq(p[2] - p[1]), _sq(p[3] - p[1]), _sq(p[3] - p[2])
@@ -388,7 +517,43 @@ def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     acc.add_tri((s01, s13, s03))
     acc.add_tri((s12, s23, s13))
     acc.add_tri((s02, s23, s03))
-    return _result(acc, jac, jac.copy(), volume)
+    out = _result(acc, jac, jac.copy(), volume)
+    out.update(tet_shape_measures(p, six_volume, (s01, s02, s03, s12, s13, s23)))
+    return out
+
+
+def midside_offsets(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Mid-side-node offsets of 10-node tets, OptiStruct's "hoe" offsets of a 3-node edge.
+
+    For each edge (i, j) with mid-side node k, ``d = x_k - (x_i + x_j) / 2`` splits into a part
+    along the edge and a part normal to it. ``midside_normal`` = max over the edges of
+    |normal part| / |x_j - x_i| (OptiStruct "hoe normal offset"); ``midside_tangent`` = max of
+    |part along the edge| / |x_j - x_i| ("hoe tangent offset": 0.25 is the quarter point,
+    where the quadratic map's Jacobian vanishes at the corner). ``inf`` for a zero-length edge.
+    """
+    normal = np.zeros(p[0].shape[1])
+    tangent = np.zeros_like(normal)
+    for i, j, k in TET10_MIDSIDE:
+        e = p[j] - p[i]
+        d = p[k] - 0.5 * (p[i] + p[j])
+        length_sq = _sq(e)
+        along = _dot(d, e)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.abs(along) / length_sq
+            nrm = np.sqrt(np.maximum(_sq(d) - along * along / length_sq, 0.0) / length_sq)
+        t[length_sq <= 0.0] = np.inf
+        nrm[length_sq <= 0.0] = np.inf
+        np.maximum(tangent, t, out=tangent)
+        np.maximum(normal, nrm, out=normal)
+    return {"midside_normal": normal, "midside_tangent": tangent}
+
+
+def tet10_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+    """Metrics of 10-node tetrahedra: every tet4 metric of the corner tetrahedron (nodes 0-3)
+    and the mid-side-node offsets of :func:`midside_offsets` (nodes 4-9)."""
+    out = tet4_quality(p[:4])
+    out.update(midside_offsets(p))
+    return out
 
 
 # ---------------------------------------------------------------------- shells
@@ -429,17 +594,24 @@ def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     return _result(acc, jac, jac.copy(), area)
 
 
-#: Kernel and the node columns it reads (the corner nodes), per element type. tet10 is
-#: measured on its corners.
+#: Kernel and the node columns it reads, per element type: the corner nodes, except for the
+#: 10-node tet, whose mid-side nodes the mid-side offsets read (its shape measures use the
+#: corner tetrahedron).
+_KERNEL_COLUMNS = {**CORNER_NODES, "tet10": NODES_PER_ELEMENT["tet10"]}
 KERNELS: dict[str, tuple[Callable[[Sequence[Vec]], dict[str, Arr]], tuple[int, ...]]] = {
-    etype: (kernel, tuple(range(CORNER_NODES[etype])))
+    etype: (kernel, tuple(range(_KERNEL_COLUMNS[etype])))
     for etype, kernel in (
         ("hex8", hex8_quality),
         ("wedge6", wedge6_quality),
         ("pyramid5", pyramid5_quality),
         ("tet4", tet4_quality),
-        ("tet10", tet4_quality),
+        ("tet10", tet10_quality),
         ("quad4", quad4_quality),
         ("tri3", tri3_quality),
     )
+}
+#: Measures a kernel returns beyond the common ones (``jacobian_corner`` ... ``volume``).
+KERNEL_EXTRA_METRICS: dict[str, tuple[str, ...]] = {
+    "tet4": TET_METRICS,
+    "tet10": TET_METRICS + TET10_METRICS,
 }

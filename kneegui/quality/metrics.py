@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.model import ElementBlock
-from kneegui.quality.kernels import KERNELS
+from kneegui.quality.kernels import KERNEL_EXTRA_METRICS, KERNELS, TET10_METRICS, TET_METRICS
 
 #: Metric arrays every :class:`ElementQuality` holds, in display order.
 METRICS: tuple[str, ...] = (
@@ -28,6 +28,9 @@ METRICS: tuple[str, ...] = (
     "skew",
     "volume",
 )
+#: Measures only tetrahedra have (the 10-node tet's mid-side offsets last), in display order;
+#: an :class:`ElementQuality` of another type holds ``None`` for them.
+TET_ONLY_METRICS: tuple[str, ...] = TET_METRICS + TET10_METRICS
 #: Element types that have quality metrics (lines and springs have none).
 MEASURED_TYPES: tuple[str, ...] = tuple(KERNELS)
 
@@ -55,6 +58,13 @@ class ElementQuality:
         Signed volume of solids; area (>= 0) of shells. Model units cubed / squared.
     inverted : (m,) ndarray of bool
         ``jacobian_corner <= 0``: inverted, partly inverted or collapsed.
+    tet_collapse, dihedral_min, dihedral_max, vol_skew, tet_aspect : (m,) ndarray or None
+        Tetrahedra (tet4, and tet10 on its corner tet): HyperMesh's tet collapse (signed like
+        the volume), the smallest / largest dihedral angle (degrees), the volumetric skew and
+        the altitude aspect ratio (docs/quality.md). ``None`` for other types.
+    midside_normal, midside_tangent : (m,) ndarray or None
+        10-node tets: the largest mid-side-node offset normal to / along its edge, over the
+        edge length. ``None`` for other types.
     """
 
     etype: str
@@ -66,13 +76,26 @@ class ElementQuality:
     skew: NDArray[np.float64]
     volume: NDArray[np.float64]
     inverted: NDArray[np.bool_]
+    tet_collapse: NDArray[np.float64] | None = None
+    dihedral_min: NDArray[np.float64] | None = None
+    dihedral_max: NDArray[np.float64] | None = None
+    vol_skew: NDArray[np.float64] | None = None
+    tet_aspect: NDArray[np.float64] | None = None
+    midside_normal: NDArray[np.float64] | None = None
+    midside_tangent: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return len(self.rows)
 
+    def has(self, name: str) -> bool:
+        """Whether this element type has the metric (the tet-only ones are ``None`` elsewhere)."""
+        return getattr(self, "jacobian_corner" if name == "jacobian" else name) is not None
+
     def metric(self, name: str) -> NDArray:
-        """One metric array by name (``"jacobian"`` is the corner Jacobian)."""
-        return getattr(self, "jacobian_corner" if name == "jacobian" else name)
+        """One metric array by name (``"jacobian"`` is the corner Jacobian); NaN for a metric
+        this element type does not have."""
+        values = getattr(self, "jacobian_corner" if name == "jacobian" else name)
+        return np.full(len(self.rows), np.nan) if values is None else values
 
 
 @dataclass(frozen=True)
@@ -106,8 +129,13 @@ class QualityResult:
         values = [q.metric(name) for q in self.by_type.values() if len(q)]
         return float(min(v.min() for v in values)) if values else float("nan")
 
+    def has_metric(self, name: str) -> bool:
+        """Whether any measured element type has the metric (a tet measure needs tets)."""
+        return any(q.has(name) for q in self.by_type.values() if len(q))
+
     def concatenated(self, name: str) -> NDArray:
-        """One metric over every type, concatenated in the order of ``by_type``."""
+        """One metric over every type, concatenated in the order of ``by_type`` (NaN for the
+        elements of types that do not have it)."""
         arrays = [q.metric(name) for q in self.by_type.values()]
         return np.concatenate(arrays) if arrays else np.zeros(0)
 
@@ -179,10 +207,7 @@ class QualityEvaluator:
                 continue
             values = self._run(etype, xyz, xyz_t, sub)
             out[etype] = ElementQuality(
-                etype=etype,
-                rows=sel,
-                inverted=values["jacobian_corner"] <= 0.0,
-                **{k: values[k] for k in METRICS},
+                etype=etype, rows=sel, inverted=values["jacobian_corner"] <= 0.0, **values
             )
         return QualityResult(out)
 
@@ -195,7 +220,8 @@ class QualityEvaluator:
     ) -> dict[str, NDArray[np.float64]]:
         kernel = KERNELS[etype][0]
         m = len(conn)
-        result = {k: np.empty(m) for k in METRICS}
+        names = METRICS + KERNEL_EXTRA_METRICS.get(etype, ())
+        result = {k: np.empty(m) for k in names}
 
         def work(start: int) -> None:
             block = conn[start : start + _CHUNK]
@@ -205,7 +231,7 @@ class QualityEvaluator:
                 pts = [np.ascontiguousarray(xyz[block[:, k]].T) for k in range(block.shape[1])]
             with np.errstate(invalid="ignore", divide="ignore"):
                 values = kernel(pts)
-            for k in METRICS:
+            for k in names:
                 result[k][start : start + len(block)] = values[k]
 
         starts = range(0, m, _CHUNK)

@@ -4,13 +4,15 @@ Each row gives a metric's direction (``min``: smaller is worse, ``max``: larger 
 ``fail`` and ``warn`` limits, an optional ``hard_fail`` limit and the source. The ``role`` column
 is ``*`` for the defaults or a role name (``flesh``, ``skin``, ...) whose rows override the
 defaults for the parts of that role. An element is *over* a limit when it is strictly worse than
-it (``value < limit`` for ``min`` metrics, ``value > limit`` for ``max`` metrics).
+it (``value < limit`` for ``min`` metrics, ``value > limit`` for ``max`` metrics). The
+tetrahedron measures' rows (``tet_collapse`` ...) may be left out of a user's table; the shipped
+table's rows then apply.
 """
 
 from __future__ import annotations
 
 import csv
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
@@ -21,8 +23,21 @@ from numpy.typing import NDArray
 from kneegui.errors import KneeguiError
 from kneegui.resources import resource_path
 
+#: Metrics of every element type; a thresholds table must give their default (``*``) rows.
+REQUIRED_METRICS: tuple[str, ...] = ("jacobian", "jacobian_gauss", "aspect", "warpage", "skew")
+#: Tetrahedron measures (tet collapse, dihedral angles, volumetric skew, tet aspect ratio, the
+#: 10-node tet's mid-side offsets); a table without their rows takes the shipped ones.
+TET_THRESHOLD_METRICS: tuple[str, ...] = (
+    "tet_collapse",
+    "dihedral_min",
+    "dihedral_max",
+    "vol_skew",
+    "tet_aspect",
+    "midside_normal",
+    "midside_tangent",
+)
 #: Metrics that have thresholds, in display order.
-THRESHOLD_METRICS: tuple[str, ...] = ("jacobian", "jacobian_gauss", "aspect", "warpage", "skew")
+THRESHOLD_METRICS: tuple[str, ...] = REQUIRED_METRICS + TET_THRESHOLD_METRICS
 DEFAULT_ROLE = "*"
 
 
@@ -95,8 +110,10 @@ class Thresholds:
         roles.setdefault(role, {})[metric] = new
         return replace(self, by_role=roles)
 
-    def to_dict(self) -> dict:
-        """JSON-ready: ``{role: {metric: {direction, fail, warn, hard_fail, source}}}``."""
+    def to_dict(self, metrics: Iterable[str] | None = None) -> dict:
+        """JSON-ready: ``{role: {metric: {direction, fail, warn, hard_fail, source}}}``, for
+        ``metrics`` only when given (a summary lists the metrics it reports)."""
+        wanted = None if metrics is None else set(metrics)
 
         def one(t: MetricThreshold) -> dict:
             return {
@@ -107,9 +124,14 @@ class Thresholds:
                 "source": t.source,
             }
 
-        out = {DEFAULT_ROLE: {m: one(t) for m, t in self.default.items()}}
+        def keep(table: Mapping[str, MetricThreshold]) -> dict:
+            return {m: one(t) for m, t in table.items() if wanted is None or m in wanted}
+
+        out = {DEFAULT_ROLE: keep(self.default)}
         for role, table in self.by_role.items():
-            out[role] = {m: one(t) for m, t in table.items()}
+            kept = keep(table)
+            if kept:
+                out[role] = kept
         return out
 
 
@@ -160,6 +182,15 @@ def load_thresholds(path: str | Path | None = None) -> Thresholds:
             default[metric] = t
         else:
             by_role.setdefault(role, {})[metric] = t
+    missing = [m for m in REQUIRED_METRICS if m not in default]
+    if missing:
+        raise ThresholdsError(f"{path}: no default ('*') row for {', '.join(missing)}")
+    shipped = resource_path("quality_thresholds.csv")
+    if any(m not in default for m in TET_THRESHOLD_METRICS) and path != shipped:
+        # an older table without the tet rows: the shipped defaults apply to tetrahedra
+        base = default_thresholds().default
+        for m in TET_THRESHOLD_METRICS:
+            default.setdefault(m, base[m])
     missing = [m for m in THRESHOLD_METRICS if m not in default]
     if missing:
         raise ThresholdsError(f"{path}: no default ('*') row for {', '.join(missing)}")

@@ -201,7 +201,11 @@ def test_heatmaps_threshold_worst_list_and_cutaway(demo_window, qtbot):
     set_slider(demo_window, qtbot, 90.0)
     panel.mode.setCurrentIndex(panel.mode.findData("quality"))
     assert ws.colour_mode == "quality"
-    for key, (label, _, _) in HEATMAP_METRICS.items():
+    offered = [panel.metric.itemData(i) for i in range(panel.metric.count())]
+    assert offered == ws.heatmap_metrics() and offered[0] == "jacobian"  # a hex + shell deck
+    assert not set(offered) & {"tet_collapse", "dihedral_min", "dihedral_max"}
+    for key in offered:
+        label = HEATMAP_METRICS[key][0]
         panel.metric.setCurrentIndex(panel.metric.findData(key))
         vp.flush()
         values = ws.element_values(key)
