@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
+from kneegui.reposition.rigid_blend import DIRECT_SOLVE_MAX, block_cg
 
 
 def _incident(triangles: NDArray[np.int64], nodes: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -213,7 +214,18 @@ class BoneContact:
                 ),
                 shape=(len(free), len(free)),
             )
-            self._solve = spla.splu(lap.tocsc()).solve
+            if len(free) <= DIRECT_SOLVE_MAX:
+                self._solve = spla.splu(lap.tocsc()).solve
+            else:
+                # a whole-body model's soft tissue: an LU grows super-linearly (time and memory),
+                # conjugate gradients near-linearly
+                inv_diag = 1.0 / lap.diagonal()
+
+                def solve(rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+                    rhs = np.asarray(rhs, dtype=np.float64).reshape(len(inv_diag), -1)
+                    return block_cg(lap, rhs, np.zeros_like(rhs), inv_diag, rtol=1e-10)
+
+                self._solve = solve
             self._coupling = sp.csr_matrix(
                 (np.concatenate(cval), (np.concatenate(crow), np.concatenate(ccol))),
                 shape=(len(free), len(self.candidates)),

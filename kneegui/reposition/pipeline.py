@@ -199,6 +199,10 @@ def pose_model(
     # the mapping's stages (pose_bones, pose_blend, ...) and the relaxation's, as before
     if relaxation is not None:  # no key when nothing was relaxed (reports read it as absent)
         timings["pose_relax"] = relaxation.seconds
+        # finding the region to relax, within pose_relax
+        timings["relax_region"] = relaxation.region_seconds + (
+            relaxation.quality.region_seconds if relaxation.quality is not None else 0.0
+        )
     timings["pose"] = result.timings_s["total"] + timings.get("pose_relax", 0.0)
     posed = model.with_coords(improved.relaxed)
     t = time.perf_counter()
