@@ -32,6 +32,7 @@ from kneegui.io.lsdyna import read_deck
 from kneegui.reposition import Repositioner
 from kneegui.reposition.pipeline import export_pose
 from kneegui.setup import load_setup
+from kneegui.topology import SOLID_TYPES
 
 folder, angle = sys.argv[1], float(sys.argv[2])
 deck = os.path.join(folder, "demo_leg.k")
@@ -69,10 +70,11 @@ split["relaxation"] -= split["relaxation setup (first export)"]
 final = r["quality"].get("smoothed", r["quality"]["posed"])
 print(json.dumps({
     "nodes": model.n_nodes, "elements": model.n_elements,
-    "solids": int(sum(len(b) for k, b in model.blocks.items() if k in ("hex8", "wedge6", "pyramid5", "tet4", "tet10"))),
+    "solids": int(sum(len(b) for k, b in model.blocks.items() if k in SOLID_TYPES)),
     "precompute": pre,
     "export": {"wall_s": wall, "cpu_s": cpu, "split_s": split},
-    "region": {"relaxed_nodes": relax.get("free_nodes", 0), "relaxed_corners": relax.get("corners", 0),
+    "region": {"relaxed_nodes": relax.get("free_nodes", 0),
+               "relaxed_corners": relax.get("corners", 0),
                "optimised_nodes": quality_opt.get("free_nodes", 0),
                "optimised_elements": quality_opt.get("elements", 0),
                "smoothed_nodes": smooth.get("free_nodes", 0)},

@@ -55,7 +55,7 @@ class ProgressBar:
             return
         self._last = now
         fraction = min(max(float(fraction), 0.0), 1.0)
-        filled = int(round(self.WIDTH * fraction))
+        filled = round(self.WIDTH * fraction)
         line = (
             f"{self.label} [{'#' * filled}{' ' * (self.WIDTH - filled)}] "
             f"{100 * fraction:3.0f}% {message}"

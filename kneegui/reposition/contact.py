@@ -217,15 +217,9 @@ class BoneContact:
             if len(free) <= DIRECT_SOLVE_MAX:
                 self._solve = spla.splu(lap.tocsc()).solve
             else:
-                # a whole-body model's soft tissue: an LU grows super-linearly (time and memory),
-                # conjugate gradients near-linearly
-                inv_diag = 1.0 / lap.diagonal()
-
-                def solve(rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-                    rhs = np.asarray(rhs, dtype=np.float64).reshape(len(inv_diag), -1)
-                    return block_cg(lap, rhs, np.zeros_like(rhs), inv_diag, rtol=1e-10)
-
-                self._solve = solve
+                # a whole-body model's soft tissue: an LU grows super-linearly (time and memory);
+                # the pushes are local, so solve only around them
+                self._solve = LocalLaplaceSolve(lap)
             self._coupling = sp.csr_matrix(
                 (np.concatenate(cval), (np.concatenate(crow), np.concatenate(ccol))),
                 shape=(len(free), len(self.candidates)),
@@ -282,6 +276,80 @@ class BoneContact:
         if len(self.free):
             positions[self.free] += self._solve(self._coupling @ push)
         return len(moved)
+
+
+class LocalLaplaceSolve:
+    """``solve(rhs)`` for a sparse Laplacian whose right-hand side is non-zero near a few nodes
+    (the pushes of the bone contact): conjugate gradients on the nodes within ``hops`` mesh
+    edges of them, zero beyond, with ``hops`` doubled until the solution at the edge of that
+    region is below ``tolerance`` times its largest value (or the region is everything).
+
+    The soft tissue lies between the bones (held) and the skin, so a push fades within a few
+    tissue thicknesses: the knee's pushes never reach the rest of a whole-body model, and its
+    nodes are not read.
+
+    Parameters
+    ----------
+    matrix : (n, n) sparse matrix
+        Symmetric positive definite, with the mesh's adjacency as its pattern.
+    hops : int
+        Initial reach of the region (mesh edges).
+    tolerance : float
+        Relative size of the solution allowed at the region's edge.
+    """
+
+    def __init__(self, matrix: sp.spmatrix, hops: int = 16, tolerance: float = 1e-7) -> None:
+        self.matrix = sp.csr_matrix(matrix)
+        self.inv_diag = 1.0 / self.matrix.diagonal()
+        self.hops = hops
+        self.tolerance = tolerance
+        self.last_region = 0  # nodes the last solve worked on
+
+    def _grow(self, mask: NDArray[np.bool_], frontier: NDArray[np.int64], hops: int) -> None:
+        ptr, idx = self.matrix.indptr, self.matrix.indices
+        for _ in range(hops):
+            if len(frontier) == 0:
+                return
+            counts = ptr[frontier + 1] - ptr[frontier]
+            starts = np.repeat(ptr[frontier] - np.cumsum(counts) + counts, counts)
+            nbrs = idx[starts + np.arange(int(counts.sum()))]
+            nbrs = np.unique(nbrs[~mask[nbrs]])
+            mask[nbrs] = True
+            frontier = nbrs
+
+    def __call__(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The solution (n, k) of ``matrix @ x = rhs``."""
+        n = self.matrix.shape[0]
+        rhs = np.asarray(rhs, dtype=np.float64).reshape(n, -1)
+        out = np.zeros_like(rhs)
+        seeds = np.flatnonzero(np.any(rhs != 0, axis=1))
+        if len(seeds) == 0:
+            return out
+        hops = self.hops
+        while True:
+            mask = np.zeros(n, dtype=bool)
+            mask[seeds] = True
+            self._grow(mask, seeds, hops)
+            region = np.flatnonzero(mask)
+            sub = self.matrix[region][:, region]
+            x = block_cg(
+                sub,
+                rhs[region],
+                np.zeros((len(region), rhs.shape[1])),
+                self.inv_diag[region],
+                rtol=1e-10,
+            )
+            if len(region) == n:
+                break
+            # the region's edge: nodes with a neighbour outside it
+            outside = (~mask).astype(np.float64)
+            edge = (self.matrix[region] @ outside) != 0
+            if np.abs(x[edge]).max(initial=0.0) <= self.tolerance * np.abs(x).max(initial=0.0):
+                break
+            hops *= 2
+        out[region] = x
+        self.last_region = len(region)
+        return out
 
 
 class BoneDepthGuard:
