@@ -156,6 +156,21 @@ def markdown(results: dict[str, Any]) -> list[str]:
         [f"{r['worst_jacobian']:.3f} / {r['inverted']}" for r in runs],
     )
     row("peak memory (process)", [f"{r['peak_rss_mb']:,.0f} MB" for r in runs])
+    lines += [
+        "",
+        "Where the export's time goes (the stage taking most of it, and the share of the "
+        "model's nodes the relaxation moved):",
+        "",
+    ]
+    for r in runs:
+        split = r["export"]["split_s"]
+        stage = max(split, key=split.get)
+        total = sum(split.values())
+        lines.append(
+            f"- {r['solids']:,} solids: {stage} {100 * split[stage] / max(total, 1e-12):.0f} % "
+            f"of the staged time; relaxed region {r['region']['relaxed_nodes']:,} of "
+            f"{r['nodes']:,} nodes ({100 * r['region']['relaxed_nodes'] / r['nodes']:.1f} %)."
+        )
     failed = [r for r in results.get("runs", []) if "error" in r]
     for r in failed:
         lines += ["", f"{r['folder']}: failed ({' '.join(r['error'])})."]

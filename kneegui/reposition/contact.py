@@ -19,7 +19,9 @@ rest place relative to that bone (outside it at rest) and stops where that way l
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +32,9 @@ from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.rigid_blend import DIRECT_SOLVE_MAX, block_cg
+
+#: Points per chunk of a threaded :meth:`BoneSurfaceDistance.query`.
+QUERY_CHUNK = 2048
 
 
 def _incident(triangles: NDArray[np.int64], nodes: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -96,15 +101,30 @@ class BoneSurfaceDistance:
         self.node_tris = _incident(tris, np.arange(len(nodes_xyz)))
         self.tree = cKDTree(nodes_xyz)
 
-    def query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def query(
+        self, p: NDArray[np.float64], threads: int | None = None
+    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """For points (M, 3) in the rest frame: signed distance (M,) (+ outside), closest surface
         point (M, 3), unit outward (pseudo-)normal there (M, 3), and the distance to the nearest
         surface node (M,).
 
         The closest point is exact among the triangles around the nearest surface node; the
         sign comes from the mean normal of every triangle as close as the best (at a shared edge
-        or vertex one face's normal alone can give the wrong side).
+        or vertex one face's normal alone can give the wrong side). Many points are split into
+        chunks of :data:`QUERY_CHUNK` measured on ``threads`` threads (default: every core, at
+        most 8); each point's result is worked out on its own, so it does not depend on the
+        thread count.
         """
+        p = np.asarray(p, dtype=np.float64)
+        threads = threads or min(os.cpu_count() or 1, 8)
+        if threads > 1 and len(p) >= 2 * QUERY_CHUNK:
+            starts = range(0, len(p), QUERY_CHUNK)
+            with ThreadPoolExecutor(threads) as pool:
+                parts = list(pool.map(lambda s: self._query(p[s : s + QUERY_CHUNK]), starts))
+            return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
+        return self._query(p)
+
+    def _query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         node_distance, k = self.tree.query(p)
         tris = self.node_tris[k]
         m, width = tris.shape

@@ -68,13 +68,21 @@ def test_the_relaxation_sees_only_the_knee_region(small_repositioner, far_reposi
     small = pose_model(small_repositioner, 45.0).report
     big_posed = pose_model(far_rep, 45.0)
     big = big_posed.report
-    # the solvers were handed the same elements and nodes: the far tissue adds none
+    # the solvers were handed the same elements: the far tissue adds none
     assert len(far_rep.relaxation.tets) == len(small_repositioner.relaxation.tets)
     assert not np.isin(far, far_rep.relaxation.tets).any()
+    assert not np.isin(far, far_rep.relaxation.free).any()
+    # and the regions they relaxed are the knee's (the harmonic weights normalise their edge
+    # weights over all the soft tissue, so the far block shifts the mapping a little and the
+    # degraded region by about 1 %; the solvers' work did not grow with the model)
     for key in ("free_nodes", "corners"):
-        assert big["relaxation"][key] == small["relaxation"][key] > 0
+        assert small["relaxation"][key] > 0
+        assert big["relaxation"][key] == pytest.approx(small["relaxation"][key], rel=0.05)
     for key in ("free_nodes", "elements"):
-        assert big["relaxation"]["quality"][key] == small["relaxation"]["quality"][key] > 0
+        assert small["relaxation"]["quality"][key] > 0
+        assert big["relaxation"]["quality"][key] == pytest.approx(
+            small["relaxation"]["quality"][key], rel=0.05
+        )
     # the far tissue is where the blend put it, untouched by relaxation and smoothing
     mapped = far_rep.pose(45.0)
     np.testing.assert_array_equal(big_posed.model.coords[far], mapped[far])
@@ -189,3 +197,15 @@ def test_local_laplace_solve_stays_near_the_pushes():
     exact = spla.splu(sp.csc_matrix(lap)).solve(rhs)
     assert 0 < solve.last_region < n // 4  # the far end of the strip was never touched
     np.testing.assert_allclose(got, exact, rtol=0, atol=1e-6 * np.abs(exact).max())
+
+
+def test_bone_distance_query_does_not_depend_on_the_thread_count(small_repositioner):
+    surface = small_repositioner._bone_surfaces()["femur"]
+    rng = np.random.default_rng(5)
+    centre = surface.node_xyz.mean(axis=0)
+    points = centre + rng.normal(scale=40.0, size=(9000, 3))
+    one = surface.query(points, threads=1)
+    two = surface.query(points, threads=2)
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert (one[0] < 0).any() and (one[0] > 0).any()  # points inside and outside the bone
