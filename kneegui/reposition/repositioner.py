@@ -428,6 +428,7 @@ class Repositioner:
             surfaces,
             self.options.regularisation,
             prior_strength=self._bone_coupling(surfaces),
+            cancel=self._cancel,
         )
 
     def _bone_coupling(self, surfaces: list[NDArray[np.int64]]) -> NDArray[np.float64]:

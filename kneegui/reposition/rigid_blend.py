@@ -11,7 +11,7 @@ linear blend of positions would.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -19,6 +19,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.model import ElementBlock
 from kneegui.topology import ELEMENT_EDGES
@@ -56,6 +57,7 @@ def harmonic_weights(
     regularisation: float = 1e-4,
     edge_weighting: str = "inverse_square_length",
     prior_strength: NDArray[np.float64] | None = None,
+    cancel: Callable[[], bool] | None = None,
 ) -> NDArray[np.float64]:
     """Harmonic partition-of-unity weights of ``free`` nodes with respect to anchor groups.
 
@@ -86,6 +88,9 @@ def harmonic_weights(
     edge_weighting : str
         ``"inverse_square_length"`` (default: a discretisation of the continuous Laplacian that
         does not depend on how finely each region is meshed) or ``"uniform"`` (graph Laplacian).
+    cancel : callable, optional
+        Polled during the iterative solve; returning True raises
+        :class:`kneegui.errors.Cancelled`.
 
     Returns
     -------
@@ -147,7 +152,7 @@ def harmonic_weights(
     if len(free) <= DIRECT_SOLVE_MAX:
         w = spla.splu(lap.tocsc()).solve(rhs)
     else:
-        w = block_cg(lap, rhs, prior, 1.0 / diag, rtol=1e-8, max_iterations=5000)
+        w = block_cg(lap, rhs, prior, 1.0 / diag, rtol=1e-8, max_iterations=5000, cancel=cancel)
     w = np.clip(w, 0.0, None)
     total = w.sum(axis=1, keepdims=True)
     return np.where(total > _SMALL, w / np.maximum(total, _SMALL), prior)
@@ -160,6 +165,7 @@ def block_cg(
     inv_diag: NDArray[np.float64],
     rtol: float = 1e-8,
     max_iterations: int = 5000,
+    cancel: Callable[[], bool] | None = None,
 ) -> NDArray[np.float64]:
     """Jacobi-preconditioned conjugate gradients for every column of ``rhs`` at once.
 
@@ -179,6 +185,8 @@ def block_cg(
         Inverse of the matrix diagonal.
     rtol : float
     max_iterations : int
+    cancel : callable, optional
+        Polled every 25 iterations; returning True raises :class:`kneegui.errors.Cancelled`.
 
     Returns
     -------
@@ -193,9 +201,11 @@ def block_cg(
     z = m * r
     p = z.copy()
     rz = np.einsum("ij,ij->j", r, z)
-    for _ in range(max_iterations):
+    for iteration in range(max_iterations):
         if not active.any():
             break
+        if cancel is not None and iteration % 25 == 0 and cancel():
+            raise Cancelled("solve cancelled")
         cols = np.flatnonzero(active)
         pc = p[:, cols]
         ap = a @ pc

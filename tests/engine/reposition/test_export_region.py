@@ -209,3 +209,18 @@ def test_bone_distance_query_does_not_depend_on_the_thread_count(small_repositio
     for a, b in zip(one, two, strict=True):
         np.testing.assert_array_equal(a, b)
     assert (one[0] < 0).any() and (one[0] > 0).any()  # points inside and outside the bone
+
+
+def test_block_cg_can_be_cancelled():
+    n = 2000
+    lap = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n) + 1e-6, -np.ones(n - 1)], [-1, 0, 1])
+    rhs = np.ones((n, 2))
+    calls = []
+
+    def cancel() -> bool:
+        calls.append(1)
+        return len(calls) > 2
+
+    with pytest.raises(Cancelled):
+        block_cg(sp.csr_matrix(lap), rhs, np.zeros_like(rhs), 1.0 / lap.diagonal(), cancel=cancel)
+    assert len(calls) == 3
