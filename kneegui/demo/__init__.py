@@ -8,9 +8,12 @@ flesh, skin, cruciate and collateral ligaments, menisci, patellar tendon and kne
 - :func:`generate_demo_leg` builds it in memory (:class:`DemoLeg`: ``model``, ``setup``,
   ``design``).
 - :func:`write_demo` writes ``demo_leg.k`` and ``demo_leg.setup.json``.
+- Both take the variant options (:class:`Variant`): tetrahedral, mixed or 10-node tet meshes
+  (:mod:`kneegui.demo.tetmesh`), a welded joint (:mod:`kneegui.demo.welded`), the initial
+  flexion and the length unit.
 """
 
 from kneegui.demo.design import DemoDesign
-from kneegui.demo.generator import PARTS, DemoLeg, generate_demo_leg, write_demo
+from kneegui.demo.generator import PARTS, DemoLeg, Variant, generate_demo_leg, write_demo
 
-__all__ = ["PARTS", "DemoDesign", "DemoLeg", "generate_demo_leg", "write_demo"]
+__all__ = ["PARTS", "DemoDesign", "DemoLeg", "Variant", "generate_demo_leg", "write_demo"]

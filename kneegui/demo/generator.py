@@ -7,12 +7,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from kneegui.demo import grid as g
+from kneegui.demo import tetmesh
 from kneegui.demo.design import DemoDesign
-from kneegui.demo.layout import Layout, make_layout
+from kneegui.demo.layout import SHAFT_ASPECT, Layout, make_layout
 from kneegui.demo.repair import QualityTargets, repair_quality
 from kneegui.demo.sliding import detach_soft_tissue
+from kneegui.demo.welded import weld_joint
 from kneegui.errors import KneeguiError
 from kneegui.io.atomic import atomic_write_text
 from kneegui.model import ElementBlock, Model, NodeSet, Part
@@ -22,6 +25,54 @@ DECK_NAME = "demo_leg.k"
 SETUP_NAME = "demo_leg.setup.json"
 MIN_ELEMENTS, MAX_ELEMENTS = 1_000, 5_000_000
 SIDES = ("right", "left")
+ELEMENT_TYPES = ("hex", "tet", "mixed", "tet10")
+JOINTS = ("sliding", "welded")
+UNITS = {"mm": 1.0, "m": 1e-3}
+FLEXION_RANGE_DEG = (0.0, 20.0)
+#: Shaft cell aspect of the variants with tetrahedra: a tet cut from a long cell is a sliver.
+TET_SHAFT_ASPECT = 3.0
+#: Repair passes at most (each grows its patch around the elements still failing).
+REPAIR_ROUNDS = 3
+
+
+@dataclass(frozen=True)
+class Variant:
+    """How the demo leg is meshed (docs/demo-leg.md, "Variants").
+
+    Attributes
+    ----------
+    element_type : {"hex", "tet", "mixed", "tet10"}
+        ``hex``: every solid a hexahedron (the default); ``tet``: a conforming BCC-lattice
+        tetrahedral mesh (:mod:`kneegui.demo.tetmesh`); ``mixed``: tetrahedral flesh, hexahedral
+        bones, ligaments and menisci; ``tet10``: ``tet`` with 10-node tets.
+    joint : {"sliding", "welded"}
+        ``sliding``: soft tissue on coincident nodes of the bones around the knee (the default,
+        :mod:`kneegui.demo.sliding`); ``welded``: one volume of flesh sharing nodes with both bones
+        and filling the joint gap (:mod:`kneegui.demo.welded`).
+    unit : {"mm", "m"}
+        Length unit of the deck and of the setup's coordinates.
+    """
+
+    element_type: str = "hex"
+    joint: str = "sliding"
+    unit: str = "mm"
+
+    def __post_init__(self) -> None:
+        for name, value, allowed in (
+            ("element type", self.element_type, ELEMENT_TYPES),
+            ("joint", self.joint, JOINTS),
+            ("unit", self.unit, tuple(UNITS)),
+        ):
+            if value not in allowed:
+                raise KneeguiError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
+
+    @property
+    def has_tets(self) -> bool:
+        return self.element_type != "hex"
+
+    @property
+    def shaft_aspect(self) -> float:
+        return TET_SHAFT_ASPECT if self.has_tets else SHAFT_ASPECT
 
 
 @dataclass(frozen=True)
@@ -83,7 +134,8 @@ class DemoLeg:
     Attributes
     ----------
     model : Model
-        Nodes, hex solids and quad shells, one ``*PART`` per tissue (ids 7xxxxx).
+        Nodes, solids (hexahedra, or tetrahedra for the tet variants) and shells (quads, or
+        triangles on faces cut into tets), one ``*PART`` per tissue (ids 7xxxxx).
     setup : dict
         Roles and landmarks in the ``kneegui-setup`` format (version 1).
     design : DemoDesign
@@ -93,7 +145,9 @@ class DemoLeg:
     side : str
         ``"right"`` or ``"left"``.
     stats : dict
-        Element counts and the resolution factor.
+        Element counts and the resolution factor; for a variant also ``variant`` and
+        ``element_types``, and with tetrahedra ``tet_cells``, ``inverted_tets`` and the worst
+        tet measures (``tet_min_dihedral_deg``, ``tet_max_dihedral_deg``, ``tet_min_collapse``).
     """
 
     model: Model
@@ -134,14 +188,16 @@ def quality_problems(model: Model) -> list[str]:
     return problems
 
 
-def candidate_layouts(elements: int, tries: int = 9) -> list[Layout]:
+def candidate_layouts(
+    elements: int, tries: int = 9, shaft_aspect: float = SHAFT_ASPECT
+) -> list[Layout]:
     """Layouts near ``elements`` solids: the nearest first, then its neighbours in resolution
     (alternately finer and coarser), each with a different block structure."""
-    first = layout_for(elements)
+    first = layout_for(elements, shaft_aspect)
     out, seen = [first], {_signature(first)}
     for m in range(1, 40):
         for sign in (1, -1):
-            lay = make_layout(first.factor * 1.03 ** (sign * m))
+            lay = make_layout(first.factor * 1.03 ** (sign * m), shaft_aspect)
             sig = _signature(lay)
             if sig in seen:
                 continue
@@ -157,13 +213,14 @@ def _signature(lay: Layout) -> tuple:
     return (lay.rows.counts, lay.cols.counts, lay.rings.counts, lay.slabs.counts)
 
 
-def layout_for(elements: int) -> Layout:
-    """The layout whose solid count is nearest ``elements`` (bisection on the resolution)."""
+def layout_for(elements: int, shaft_aspect: float = SHAFT_ASPECT) -> Layout:
+    """The layout whose solid (grid cell) count is nearest ``elements`` (bisection on the
+    resolution)."""
     lo, hi = 0.05, 20.0
     best: tuple[int, float, Layout] | None = None
     for _ in range(40):
         mid = np.sqrt(lo * hi)
-        lay = make_layout(mid)
+        lay = make_layout(mid, shaft_aspect)
         n = count_solids(lay)
         cand = (abs(n - elements), mid, lay)
         if best is None or cand[:2] < best[:2]:
@@ -179,7 +236,14 @@ def layout_for(elements: int) -> Layout:
 
 
 def generate_demo_leg(
-    elements: int = 20_000, side: str = "right", design: DemoDesign | None = None
+    elements: int = 20_000,
+    side: str = "right",
+    design: DemoDesign | None = None,
+    *,
+    element_type: str = "hex",
+    joint: str = "sliding",
+    initial_flexion: float | None = None,
+    unit: str = "mm",
 ) -> DemoLeg:
     """Generate the built-in demo lower extremity (pelvis and foot excluded).
 
@@ -199,6 +263,15 @@ def generate_demo_leg(
         that no element is inverted.
     design : DemoDesign, optional
         Anatomy; the default is the documented 50th-percentile male knee.
+    element_type : {"hex", "tet", "mixed", "tet10"}
+        See :class:`Variant`. With tetrahedra, ``elements`` counts the grid cells; each tet cell
+        becomes 12 tetrahedra (docs/demo-leg.md).
+    joint : {"sliding", "welded"}
+        See :class:`Variant`.
+    initial_flexion : float, optional
+        Knee angle (degrees, 0 - 20) the leg is built at; the default is the design's (9).
+    unit : {"mm", "m"}
+        Length unit of the model and of the setup's coordinates.
 
     Returns
     -------
@@ -207,8 +280,9 @@ def generate_demo_leg(
     Raises
     ------
     KneeguiError
-        Unknown side, an element count outside 1,000 - 5,000,000, or no resolution near the
-        request meets the quality bounds (not seen with the default design at any size).
+        Unknown side or variant, an element count outside 1,000 - 5,000,000, a flexion outside
+        0 - 20 degrees, or no resolution near the request meets the quality bounds (not seen with
+        the default design at any size).
     """
     if side not in SIDES:
         raise KneeguiError(f"side must be 'right' or 'left', got {side!r}")
@@ -216,10 +290,18 @@ def generate_demo_leg(
         raise KneeguiError(
             f"elements must be between {MIN_ELEMENTS:,} and {MAX_ELEMENTS:,}, got {elements}"
         )
+    variant = Variant(element_type, joint, unit)
     design = design or DemoDesign()
+    if initial_flexion is not None:
+        lo, hi = FLEXION_RANGE_DEG
+        if not (lo <= float(initial_flexion) <= hi):
+            raise KneeguiError(
+                f"initial flexion must be between {lo:g} and {hi:g} degrees, got {initial_flexion}"
+            )
+        design = replace(design, initial_flexion_deg=float(initial_flexion))
     tried = []
-    for layout in candidate_layouts(int(elements)):
-        leg, problems = build_demo_leg(layout, design, side)
+    for layout in candidate_layouts(int(elements), shaft_aspect=variant.shaft_aspect):
+        leg, problems = build_demo_leg(layout, design, side, variant)
         if not problems:
             return leg
         tried.append(f"{leg.stats['solids']:,} solids: {'; '.join(problems)}")
@@ -231,13 +313,14 @@ def generate_demo_leg(
 
 
 def build_demo_leg(
-    layout: Layout, design: DemoDesign, side: str = "right"
+    layout: Layout, design: DemoDesign, side: str = "right", variant: Variant | None = None
 ) -> tuple[DemoLeg, list[str]]:
     """Build the demo leg of one layout, repairing it if it misses the quality bounds.
 
     The grid is built and measured (:func:`quality_problems`); if an element misses a bound,
     the free flesh nodes around it are moved (:func:`repair_grid`) and the mesh is measured
-    again. A mesh that met the bounds as built is returned untouched.
+    again, up to :data:`REPAIR_ROUNDS` times. A mesh that met the bounds as built is returned
+    untouched.
 
     Parameters
     ----------
@@ -246,6 +329,10 @@ def build_demo_leg(
     design : DemoDesign
         Anatomy.
     side : {"right", "left"}
+    variant : Variant, optional
+        Meshing variant (default: hexahedra, sliding joint, mm). The grid is measured and
+        repaired as hexahedra; a variant with tetrahedra is then cut into tets
+        (:mod:`kneegui.demo.tetmesh`) and must have no inverted tet.
 
     Returns
     -------
@@ -254,15 +341,28 @@ def build_demo_leg(
     problems : list of str
         The bounds the final mesh still misses ([] when it meets them all).
     """
+    variant = variant or Variant()
     grid = g.build_grid(design, layout)
-    leg = _assemble(grid, design, side)
+    if variant.joint == "welded":
+        grid = weld_joint(grid)
+    as_hex = replace(variant, element_type="hex", unit="mm")
+    leg = _assemble(grid, design, side, as_hex)
     problems = quality_problems(leg.model)
     moved = 0
-    if problems:
-        grid, moved = repair_grid(grid)
-        if moved:
-            leg = _assemble(grid, design, side)
-            problems = quality_problems(leg.model)
+    for _ in range(REPAIR_ROUNDS):
+        if not problems:
+            break
+        grid, moved_now = repair_grid(grid)
+        if not moved_now:
+            break
+        moved += moved_now
+        leg = _assemble(grid, design, side, as_hex)
+        problems = quality_problems(leg.model)
+    if variant != as_hex and not problems:
+        leg = _assemble(grid, design, side, variant)
+        inverted = leg.stats.get("inverted_tets", 0)
+        if inverted:
+            problems = [f"{inverted} inverted tetrahedra"]
     leg.stats["repaired_nodes"] = moved
     if problems:
         leg.stats["quality_problems"] = problems
@@ -273,7 +373,7 @@ def repair_grid(grid: g.Grid) -> tuple[g.Grid, int]:
     """Move free flesh nodes (:func:`kneegui.demo.grid.free_flesh_nodes`) around the elements
     that miss the quality bounds (:mod:`kneegui.demo.repair`); returns the new grid and how many
     nodes moved."""
-    hexes = grid.cell_conn[grid.cell_label != g.VOID]
+    hexes = grid.cell_conn[grid.cell_label > g.VOID]
     quads = np.concatenate([conn for conn, _ in grid.shells.values()])
     coords = repair_quality(
         grid.coords,
@@ -287,7 +387,10 @@ def repair_grid(grid: g.Grid) -> tuple[g.Grid, int]:
     return replace(grid, coords=coords), moved
 
 
-def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
+def _assemble(
+    grid: g.Grid, design: DemoDesign, side: str, variant: Variant | None = None
+) -> DemoLeg:
+    variant = variant or Variant()
     suffix = "R" if side == "right" else "L"
     labels = grid.cell_label
     solid_pid = np.zeros(len(labels), dtype=np.int64)
@@ -316,43 +419,97 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
     quad_pid = np.concatenate(shell_pid)
     order = np.argsort(quad_pid, kind="stable")
     quad_conn, quad_pid = quad_conn[order], quad_pid[order]
-
-    # soft tissue slides on the bones around the joint (see kneegui.demo.sliding)
     grid_coords = grid.coords
     role_pids = {r: [s.pid for s in PARTS if s.role == r] for r in {s.role for s in PARTS}}
-    sliding = role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
-    for bones, soft, attached in (
-        # the menisci slide under the femur but sit on the tibia; the flesh slides on both
-        (role_pids["femur"], sliding + role_pids["meniscus"], []),
-        (role_pids["tibia"] + role_pids["fibula"], sliding, []),
-    ):
-        grid_coords, (hex_conn, quad_conn) = detach_soft_tissue(
+    tet_conn = np.zeros((0, 4), dtype=np.int64)
+    tet_pid = np.zeros(0, dtype=np.int64)
+    tri_conn = np.zeros((0, 3), dtype=np.int64)
+    tri_pid = np.zeros(0, dtype=np.int64)
+    tet_stats: dict[str, Any] = {}
+    if variant.has_tets:
+        (
             grid_coords,
-            [(hex_conn, hex_pid), (quad_conn, quad_pid)],
-            bones,
-            soft,
-            attached_pids=attached,
+            hex_conn,
+            hex_pid,
+            tet_conn,
+            tet_pid,
+            quad_conn,
+            quad_pid,
+            tri_conn,
+            tri_pid,
+            tet_stats,
+        ) = _cut_tets(
+            grid_coords,
+            hex_conn,
+            hex_pid,
+            quad_conn,
+            quad_pid,
+            variant,
+            role_pids["flesh"],
+            _pinned_nodes(grid),
         )
 
-    used = np.unique(np.concatenate([hex_conn.ravel(), quad_conn.ravel()]))
+    blocks_in = [
+        (hex_conn, hex_pid),
+        (tet_conn, tet_pid),
+        (quad_conn, quad_pid),
+        (tri_conn, tri_pid),
+    ]
+    if variant.joint == "sliding":
+        # soft tissue slides on the bones around the joint (see kneegui.demo.sliding)
+        sliding = (
+            role_pids["flesh"] + role_pids["capsule"] + role_pids["skin"] + role_pids["tendon"]
+        )
+        for bones, soft, attached in (
+            # the menisci slide under the femur but sit on the tibia; the flesh slides on both
+            (role_pids["femur"], sliding + role_pids["meniscus"], []),
+            (role_pids["tibia"] + role_pids["fibula"], sliding, []),
+        ):
+            grid_coords, conns = detach_soft_tissue(
+                grid_coords, blocks_in, bones, soft, attached_pids=attached
+            )
+            blocks_in = [(c, pid) for c, (_, pid) in zip(conns, blocks_in, strict=True)]
+    (hex_conn, _), (tet_conn, _), (quad_conn, _), (tri_conn, _) = blocks_in
+    tet_type = "tet4"
+    if variant.element_type == "tet10":
+        grid_coords, tet_conn = tetmesh.add_mid_edge_nodes(grid_coords, tet_conn)
+        tet_type = "tet10"
+
+    used = np.unique(np.concatenate([c.ravel() for c in (hex_conn, tet_conn, quad_conn, tri_conn)]))
     remap = np.full(len(grid_coords), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     coords = grid_coords[used].copy()
-    hex_conn = remap[hex_conn]
-    quad_conn = remap[quad_conn]
+    hex_conn, tet_conn = remap[hex_conn], remap[tet_conn]
+    quad_conn, tri_conn = remap[quad_conn], remap[tri_conn]
     if side == "left":
         coords[:, 1] *= -1.0
         hex_conn = hex_conn[:, list(MIRRORED_NODE_ORDER["hex8"])]
+        tet_conn = tet_conn[:, list(MIRRORED_NODE_ORDER[tet_type])]
         quad_conn = quad_conn[:, list(MIRRORED_NODE_ORDER["quad4"])]
+        tri_conn = tri_conn[:, list(MIRRORED_NODE_ORDER["tri3"])]
+    scale = UNITS[variant.unit]
+    if scale != 1.0:
+        coords *= scale
     node_ids = np.arange(1, len(used) + 1, dtype=np.int64)
-    n_hex = len(hex_conn)
-    shell_start = 10 ** len(str(n_hex)) + 1
-    blocks = {
-        "hex8": ElementBlock("hex8", np.arange(1, n_hex + 1), hex_pid, hex_conn),
-        "quad4": ElementBlock(
+    n_hex, n_tet = len(hex_conn), len(tet_conn)
+    n_solid = n_hex + n_tet
+    shell_start = 10 ** len(str(n_solid)) + 1
+    blocks = {}
+    if n_hex:
+        blocks["hex8"] = ElementBlock("hex8", np.arange(1, n_hex + 1), hex_pid, hex_conn)
+    if n_tet:
+        blocks[tet_type] = ElementBlock(
+            tet_type, np.arange(n_hex + 1, n_solid + 1), tet_pid, tet_conn
+        )
+    if len(quad_conn) or not len(tri_conn):
+        blocks["quad4"] = ElementBlock(
             "quad4", np.arange(shell_start, shell_start + len(quad_conn)), quad_pid, quad_conn
-        ),
-    }
+        )
+    if len(tri_conn):
+        tri_start = shell_start + len(quad_conn)
+        blocks["tri3"] = ElementBlock(
+            "tri3", np.arange(tri_start, tri_start + len(tri_conn)), tri_pid, tri_conn
+        )
     parts = {s.pid: Part(s.pid, f"{s.stem}-{suffix}", s.secid, s.pid - 700000) for s in PARTS}
     lat = remap[grid.landmarks["lateral_condyle"]]
     med = remap[grid.landmarks["medial_condyle"]]
@@ -361,12 +518,14 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
         7002: NodeSet(7002, f"LX-Landmark-Condyle-Medial-{suffix}", med),
     }
     model = Model(node_ids, coords, blocks, parts, node_sets)
-    setup = _setup(design, side, node_ids, lat, med, remap[grid.landmarks["medial_plateau"]])
+    setup = _setup(
+        design, side, node_ids, lat, med, remap[grid.landmarks["medial_plateau"]], variant.unit
+    )
     counts = model.element_counts()
     stats = {
         "resolution_factor": grid.layout.factor,
-        "solids": n_hex,
-        "shells": len(quad_conn),
+        "solids": n_solid,
+        "shells": len(quad_conn) + len(tri_conn),
         "nodes": len(used),
         "grid": {
             "rows": grid.layout.nu,
@@ -376,16 +535,99 @@ def _assemble(grid: g.Grid, design: DemoDesign, side: str) -> DemoLeg:
         },
         "elements_per_part": {parts[p].title: sum(c.values()) for p, c in sorted(counts.items())},
     }
+    if variant != Variant():
+        stats["variant"] = {
+            "element_type": variant.element_type,
+            "joint": variant.joint,
+            "unit": variant.unit,
+            "initial_flexion_deg": design.initial_flexion_deg,
+        }
+        stats["element_types"] = {t: len(b) for t, b in blocks.items()}
+    stats.update(tet_stats)
     return DemoLeg(model, setup, design, grid.layout, side, stats)
 
 
-def _setup(design, side, node_ids, lat, med, plateau_index) -> dict[str, Any]:
+def _pinned_nodes(grid: g.Grid) -> NDArray[np.bool_]:
+    """Lattice nodes the tet improvement must not move: on the two cuts or on a cavity cell."""
+    ix = g._Index(grid.layout)
+    layer = np.arange(len(grid.coords)) // ix.per_layer
+    pinned = (layer == 0) | (layer == grid.layout.nk)
+    pinned[grid.cell_conn[grid.cell_label == g.VOID].ravel()] = True
+    return pinned
+
+
+def _cut_tets(coords, hex_conn, hex_pid, quad_conn, quad_pid, variant, flesh_pids, pinned):
+    """Cut the tet cells of the variant into a BCC tet mesh (:mod:`kneegui.demo.tetmesh`), move
+    the cell centres and the grid nodes inside one part (not on a shell, a part boundary, a cut or
+    the cavity: the anatomy stays as it is) to the best worst tet quality, and split the shells on
+    cut faces."""
+    if variant.element_type == "mixed":
+        is_tet = np.isin(hex_pid, flesh_pids)
+    else:
+        is_tet = np.ones(len(hex_conn), dtype=bool)
+    # the part id is the label: BCC tets never cross a part boundary
+    mesh = tetmesh.tetrahedralise(coords, hex_conn, hex_pid, is_tet, forced_split=quad_conn)
+    centres = mesh.centre_of[mesh.centre_of >= 0]
+    n = len(coords)
+    lowest = np.full(n, np.iinfo(np.int64).max)
+    highest = np.full(n, -1)
+    np.minimum.at(lowest, hex_conn.ravel(), np.repeat(hex_pid, 8))
+    np.maximum.at(highest, hex_conn.ravel(), np.repeat(hex_pid, 8))
+    free = (lowest == highest) & ~pinned
+    free[quad_conn.ravel()] = False  # shells keep their shape
+    in_tets = np.zeros(len(mesh.coords), dtype=bool)
+    in_tets[mesh.tets.ravel()] = True
+    in_hexes = np.zeros(len(mesh.coords), dtype=bool)
+    in_hexes[hex_conn[mesh.hex_rows].ravel()] = True
+    corners = np.flatnonzero(free & in_tets[: len(free)] & ~in_hexes[: len(free)])
+    movable = np.concatenate([centres, corners])
+    new_coords = tetmesh.improve_centres(mesh.coords, mesh.tets, movable)
+    q = tetmesh.tet_quality(new_coords, mesh.tets)
+    tet_pid = hex_pid[mesh.tet_cell]
+    # shells on cut faces become the same two triangles
+    on_cut = tetmesh._rows_in(np.sort(quad_conn, axis=1), mesh.split_face_keys)
+    tris = tetmesh.split_triangles(coords, quad_conn[on_cut])
+    tri_pid = np.repeat(quad_pid[on_cut], 2)
+    order = np.argsort(tri_pid, kind="stable")
+    stats = {
+        "inverted_tets": int(np.count_nonzero(q["volume"] <= 0.0)),
+        "tet_min_dihedral_deg": round(float(q["min_dihedral"].min()), 2),
+        "tet_max_dihedral_deg": round(float(q["max_dihedral"].max()), 2),
+        "tet_min_collapse": round(float(q["collapse"].min()), 4),
+        "tet_cells": int(is_tet.sum()),
+    }
+    return (
+        new_coords,
+        hex_conn[mesh.hex_rows],
+        hex_pid[mesh.hex_rows],
+        mesh.tets,
+        tet_pid,
+        quad_conn[~on_cut],
+        quad_pid[~on_cut],
+        tris[order],
+        tri_pid[order],
+        stats,
+    )
+
+
+def _setup(design, side, node_ids, lat, med, plateau_index, unit="mm") -> dict[str, Any]:
     sign = 1.0 if side == "right" else -1.0
     phi = design.flexion_rad
+    scale = UNITS[unit]
+    digits = 6 if scale == 1.0 else 9
 
     def tibia_point(x, y, z):
-        p = g.rotate_about_y(np.array([x, y, z], dtype=float), phi)
-        return [round(float(p[0]), 6), round(sign * float(p[1]), 6), round(float(p[2]), 6)]
+        p = g.rotate_about_y(np.array([x, y, z], dtype=float), phi) * scale
+        return [
+            round(float(p[0]), digits),
+            round(sign * float(p[1]), digits),
+            round(float(p[2]), digits),
+        ]
+
+    def femur_point(x, y, z):
+        if scale == 1.0:
+            return [x, sign * y, z]
+        return [round(x * scale, digits), round(sign * y * scale, digits), round(z * scale, digits)]
 
     fx, fy = design.femur_shaft_centre
     tx, ty = design.tibia_shaft_centre
@@ -398,7 +640,7 @@ def _setup(design, side, node_ids, lat, med, plateau_index) -> dict[str, Any]:
         "version": 1,
         "description": "kneegui built-in demo leg (procedural 50th-percentile male lower "
         "extremity, pelvis and foot excluded)",
-        "units": "mm",
+        "units": unit,
         "side": side,
         "moving_segment": "tibia",
         "roles": roles,
@@ -406,7 +648,7 @@ def _setup(design, side, node_ids, lat, med, plateau_index) -> dict[str, Any]:
             "lateral_condyle": node_ids[lat].tolist(),
             "medial_condyle": node_ids[med].tolist(),
             "lr_axis": [int(node_ids[plateau_index]), tibia_point(tx, ty, ankle_z)],
-            "femur_axis": [[fx, sign * fy, 330.0], [fx, sign * fy, 120.0]],
+            "femur_axis": [femur_point(fx, fy, 330.0), femur_point(fx, fy, 120.0)],
             "tibia_axis": [tibia_point(tx, ty, -80.0), tibia_point(tx, ty, -350.0)],
         },
         "kinematics": {
@@ -419,7 +661,14 @@ def _setup(design, side, node_ids, lat, med, plateau_index) -> dict[str, Any]:
 
 
 def write_demo(
-    outdir: str | Path, elements: int = 20_000, side: str = "right"
+    outdir: str | Path,
+    elements: int = 20_000,
+    side: str = "right",
+    *,
+    element_type: str = "hex",
+    joint: str = "sliding",
+    initial_flexion: float | None = None,
+    unit: str = "mm",
 ) -> tuple[Path, Path]:
     """Generate the demo leg and write ``demo_leg.k`` and ``demo_leg.setup.json`` in ``outdir``.
 
@@ -427,8 +676,9 @@ def write_demo(
     ----------
     outdir : str or Path
         Output folder (created if missing).
-    elements, side
-        As :func:`generate_demo_leg`.
+    elements, side, element_type, joint, initial_flexion, unit
+        As :func:`generate_demo_leg`. A variant's deck title names it (and its length unit; the
+        setup file states it as ``"units"``).
 
     Returns
     -------
@@ -438,12 +688,23 @@ def write_demo(
     from kneegui.io.lsdyna import write_model
     from kneegui.setup.format import setup_to_json
 
-    leg = generate_demo_leg(elements, side)
+    leg = generate_demo_leg(
+        elements,
+        side,
+        element_type=element_type,
+        joint=joint,
+        initial_flexion=initial_flexion,
+        unit=unit,
+    )
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
-    deck = write_model(
-        leg.model, out / DECK_NAME, title=f"kneegui demo leg ({side}, {leg.stats['solids']} solids)"
-    )
+    title = f"kneegui demo leg ({side}, {leg.stats['solids']} solids"
+    if "variant" in leg.stats:
+        v = leg.stats["variant"]
+        title += (
+            f", {v['element_type']} {v['joint']}, {v['initial_flexion_deg']:g} deg, {v['unit']}"
+        )
+    deck = write_model(leg.model, out / DECK_NAME, title=title + ")")
     setup_path = out / SETUP_NAME
     setup = dict(leg.setup, model=DECK_NAME)
     atomic_write_text(setup_path, setup_to_json(setup))

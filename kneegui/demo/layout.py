@@ -113,6 +113,7 @@ class Layout:
     rings: Blocks
     slabs: Blocks
     slab_z: tuple[tuple[float, float], ...]
+    shaft_aspect: float = SHAFT_ASPECT
 
     @property
     def nu(self) -> int:
@@ -159,11 +160,13 @@ def _count(minimum: int, width: float, factor: float, size: float = REFERENCE_CE
     return max(minimum, round(factor * width / size))
 
 
-def make_layout(factor: float) -> Layout:
+def make_layout(factor: float, shaft_aspect: float = SHAFT_ASPECT) -> Layout:
     """Block counts for a resolution factor (1 -> about 20,000 solid elements).
 
     The shaft slabs are sized from the bone perimeter spacing so that the cells next to the
-    bones keep an aspect ratio of at most about :data:`SHAFT_ASPECT`.
+    bones keep an aspect ratio of at most about ``shaft_aspect`` (default
+    :data:`SHAFT_ASPECT`; the tetrahedral variants use a smaller one, since a tet cut from a long
+    cell is a sliver).
     """
     rows = Blocks(
         tuple(b[0] for b in ROW_BLOCKS), tuple(_count(b[1], b[2], factor) for b in ROW_BLOCKS)
@@ -177,7 +180,7 @@ def make_layout(factor: float) -> Layout:
     perimeter = 2 * (rows.total + cols.total)
     # smallest bone perimeter in a shaft: the tibia, 2 pi 12 mm, drawn as a bulged square
     spacing = 2 * np.pi * 12.0 * 0.97 / perimeter
-    shaft_len = SHAFT_ASPECT * spacing
+    shaft_len = shaft_aspect * spacing
     knee_size = REFERENCE_CELL / factor
     counts = []
     for name, minimum, z0, z1, rel in SLAB_BLOCKS:
@@ -191,4 +194,6 @@ def make_layout(factor: float) -> Layout:
             by_aspect = int(np.ceil(length / shaft_len))
             counts.append(max(minimum, by_size, by_aspect))
     slabs = Blocks(tuple(b[0] for b in SLAB_BLOCKS), tuple(counts))
-    return Layout(factor, rows, cols, rings, slabs, tuple((b[2], b[3]) for b in SLAB_BLOCKS))
+    return Layout(
+        factor, rows, cols, rings, slabs, tuple((b[2], b[3]) for b in SLAB_BLOCKS), shaft_aspect
+    )
