@@ -737,6 +737,8 @@ class QualityCurvePanel(QWidget):
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
         self.axes[0].axhline(0.0, color="#888888", lw=0.6)
+        # an inverted element's determinant ratio can reach -20; the usable range is 0..1
+        self.axes[0].set_ylim(-1.05, 1.05)
         self.axes[-1].set_xlabel("flexion (°)", fontsize=8)
         if self.ws.preview.live_curve is None:
             self.axes[0].set_title("live mapping: computing…", fontsize=8)
