@@ -143,8 +143,8 @@ def locked_inverted_warning(inverted: dict[str, Any], preflight: Preflight) -> l
         return []
     lo, hi = preflight.valid_range_deg()
     return [
-        f"{inverted['locked']} locked element(s) inverted (every node tied to bones the "
-        f"kinematics move apart; ids {_id_list(inverted['locked_ids'])}); the pre-flight check "
+        f"{inverted['locked']} locked element(s) inverted (nodes tied to bones the kinematics "
+        f"move apart, and no free node that could save them; ids {_id_list(inverted['locked_ids'])}); the pre-flight check "
         f"finds every locked element valid only from {lo:.1f} to {hi:.1f} deg"
     ]
 
