@@ -458,9 +458,7 @@ def _valid(
     return out
 
 
-def _feasible(
-    posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str
-) -> NDArray[np.bool_]:
+def _feasible(posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str) -> NDArray[np.bool_]:
     """Whether elements with some nodes fixed at ``posed`` (L, k, 3) could still be valid
     wherever their ``free`` (L, k) nodes go: False only with a proof that they cannot.
 

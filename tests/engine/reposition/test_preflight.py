@@ -206,7 +206,9 @@ def test_the_proof_that_a_free_node_cannot_save_an_element_is_exact(seed):
     best_unproved = np.array([_best_corner_volume(hexes[k], slot) for k in unproved])
     assert len(by_planes) >= 10
     assert np.all(best_proved < -1e-6) and np.all(best_unproved > 1e-6)
-    block = ElementBlock("hex8", np.arange(n), np.ones(n, dtype=int), np.arange(8 * n).reshape(n, 8))
+    block = ElementBlock(
+        "hex8", np.arange(n), np.ones(n, dtype=int), np.arange(8 * n).reshape(n, 8)
+    )
     valid_now = ~compute_quality(hexes.reshape(-1, 3), {"hex8": block})["hex8"].inverted
     assert valid_now.sum() > 100 and not proved[valid_now].any()
 
@@ -264,7 +266,10 @@ def test_welded_demo_lists_elements_tied_to_two_bones(welded):
     # some with free nodes too, each with a limit: their bone nodes alone leave no valid shape
     partial = locked.free_nodes > 0
     assert partial.sum() >= 5
-    assert np.all(np.isfinite(locked.inverts_above_deg[partial]) | np.isfinite(locked.inverts_below_deg[partial]))
+    assert np.all(
+        np.isfinite(locked.inverts_above_deg[partial])
+        | np.isfinite(locked.inverts_below_deg[partial])
+    )
     assert np.all(pre.locked.inverts_above_deg[np.isfinite(pre.locked.inverts_above_deg)] > 9.0)
 
 
@@ -273,7 +278,9 @@ def test_welded_limits_are_where_the_pose_inverts(welded):
     its limit and inverted at it."""
     repositioner, pre = welded
     model = repositioner.model
-    finite = np.flatnonzero(np.isfinite(pre.locked.inverts_above_deg) & (pre.locked.free_nodes == 0))
+    finite = np.flatnonzero(
+        np.isfinite(pre.locked.inverts_above_deg) & (pre.locked.free_nodes == 0)
+    )
     assert len(finite) >= 5
     for k in finite[:6]:
         etype, row = str(pre.locked.etype[k]), int(pre.locked.rows[k])
