@@ -1,7 +1,9 @@
 """``kneegui-gui [DECK] [--setup S] [--screenshot PNG] [--flexion DEG] [--demo-elements N]``.
 
 With no deck the window opens the built-in demo leg with its setup. With ``--screenshot`` it
-saves a PNG of the real window once the model is posed and rendered, then exits (0 on success).
+saves a PNG of the real window once the model is posed and rendered (and, as in the window, the
+export of the resting angle is shown: ``--live`` keeps the live mapping), then exits (0 on
+success).
 """
 
 from __future__ import annotations
@@ -37,6 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="relax and smooth the pose (as the toolbar button) before the screenshot",
     )
     parser.add_argument(
+        "--live",
+        action="store_true",
+        help="keep the live mapping: do not show the export when the slider rests",
+    )
+    parser.add_argument(
         "--demo-elements", type=int, default=None, help="size of the generated demo leg (elements)"
     )
     return parser
@@ -59,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     window = MainWindow()
     if args.screenshot:
         window.ws.autosave_enabled = False  # nobody to ask: leave any autosave as it is
+    if args.live:
+        window.set_rest_export(False)
     window.show()
     status = {"code": 0}
 
@@ -90,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
             QTimer.singleShot(300, lambda: finish_when_idle(ready))
 
     def finish_when_idle(ready: bool) -> None:
-        if window.ws.tasks.busy and time.monotonic() - started < READY_TIMEOUT_S + 300:
+        busy = window.ws.tasks.busy or window.ws.preview_pending
+        if busy and time.monotonic() - started < READY_TIMEOUT_S + 300:
             QTimer.singleShot(200, lambda: finish_when_idle(ready))
             return
         QTimer.singleShot(300, lambda: finish(ready))

@@ -21,12 +21,22 @@ from PySide6.QtWidgets import (
     QMainWindow,
     QMessageBox,
     QProgressBar,
+    QProgressDialog,
     QPushButton,
     QToolBar,
+    QVBoxLayout,
     QWidget,
 )
 
-from app.panels import FlexionPanel, LandmarkPanel, LigamentPanel, ModelPanel, QualityPanel
+from app.panels import (
+    FlexionPanel,
+    LandmarkPanel,
+    LigamentPanel,
+    ModelPanel,
+    QualityCurvePanel,
+    QualityPanel,
+    ViewIndicator,
+)
 from app.preflight_panel import LockedOverlay, PreflightPanel
 from app.qt_compat import protect_singletons
 from app.viewport import CAMERA_PRESETS, Viewport
@@ -38,6 +48,9 @@ ORGANIZATION = "kneegui"
 APPLICATION = "kneegui-gui"
 MAX_RECENT = 8
 DECK_FILTER = "LS-DYNA decks (*.k *.key *.dyn);;All files (*)"
+#: The tasks of opening a deck, followed in the open-progress dialog (the second one only
+#: right after the first: it also runs after every setup edit, without a dialog).
+OPEN_TASKS = ("Opening deck", "Preparing the repositioner")
 
 
 def app_settings() -> QSettings:
@@ -70,7 +83,7 @@ class MainWindow(QMainWindow):
     def __init__(self, workspace: Workspace | None = None):
         protect_singletons()
         super().__init__()
-        self.setWindowTitle("kneegui — knee repositioning")
+        self.setWindowTitle("kneegui — knee repositioning[*]")
         self.setObjectName("kneegui-main")
         self.ws = workspace or Workspace(self)
         self.settings = app_settings()
@@ -81,7 +94,14 @@ class MainWindow(QMainWindow):
         self.restore_answer: Callable[[Path, Path], bool] | None = None
         self.restore_dialog: QMessageBox | None = None
         self.viewport = Viewport(self.ws, self)
-        self.setCentralWidget(self.viewport)
+        self.indicator = ViewIndicator(self.ws)
+        central = QWidget(self)
+        column = QVBoxLayout(central)
+        column.setContentsMargins(0, 0, 0, 0)
+        column.setSpacing(0)
+        column.addWidget(self.indicator)
+        column.addWidget(self.viewport, 1)
+        self.setCentralWidget(central)
         self.model_panel = ModelPanel(self.ws)
         self.landmark_panel = LandmarkPanel(self.ws)
         self.quality_panel = QualityPanel(self.ws)
@@ -89,6 +109,7 @@ class MainWindow(QMainWindow):
         self.flexion_panel = FlexionPanel(self.ws)
         self.preflight_panel = PreflightPanel(self.ws)
         self.locked_overlay = LockedOverlay(self.viewport, self.preflight_panel)
+        self.quality_curve_panel = QualityCurvePanel(self.ws)
         self.docks: dict[str, QDockWidget] = {}
         self._dock("Model", self.model_panel, Qt.DockWidgetArea.LeftDockWidgetArea)
         self._dock("Landmarks", self.landmark_panel, Qt.DockWidgetArea.RightDockWidgetArea)
@@ -96,9 +117,13 @@ class MainWindow(QMainWindow):
         self._dock("Ligaments", self.ligament_panel, Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Pre-flight", self.preflight_panel, Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Flexion", self.flexion_panel, Qt.DockWidgetArea.BottomDockWidgetArea)
+        self._dock(
+            "Quality vs flexion", self.quality_curve_panel, Qt.DockWidgetArea.RightDockWidgetArea
+        )
         self.tabifyDockWidget(self.docks["Landmarks"], self.docks["Quality"])
         self.tabifyDockWidget(self.docks["Quality"], self.docks["Ligaments"])
-        self.tabifyDockWidget(self.docks["Ligaments"], self.docks["Pre-flight"])
+        self.tabifyDockWidget(self.docks["Ligaments"], self.docks["Quality vs flexion"])
+        self.tabifyDockWidget(self.docks["Quality vs flexion"], self.docks["Pre-flight"])
         self.docks["Landmarks"].raise_()
         self._build_status()
         self._build_actions()
@@ -110,14 +135,17 @@ class MainWindow(QMainWindow):
         self.ws.tasks.started.connect(self._task_started)
         self.ws.tasks.progress.connect(self._task_progress)
         self.ws.tasks.finished.connect(self._task_finished)
-        self.ws.model_changed.connect(self._update_title)
+        self.ws.model_changed.connect(self._on_model_opened)
+        self.ws.dirty_changed.connect(self.setWindowModified)
+        self.open_progress: QProgressDialog | None = None
+        self._opening = False
         self.resize(1500, 920)
         self._restore_layout()
 
     # ------------------------------------------------------------------ construction
     def _dock(self, title: str, widget: QWidget, area) -> None:
         dock = QDockWidget(title, self)
-        dock.setObjectName(f"dock-{title.lower()}")
+        dock.setObjectName(f"dock-{title.lower().replace(' ', '-')}")
         dock.setWidget(widget)
         self.addDockWidget(area, dock)
         self.docks[title] = dock
@@ -163,6 +191,11 @@ class MainWindow(QMainWindow):
         self._action(edit, "Redo", self.ws.redo, QKeySequence.StandardKey.Redo)
         tools = mb.addMenu("&Mesh")
         self._action(tools, "Relax and smooth current pose", self.ws.smooth)
+        self.rest_export_action = QAction("Show the export when the slider rests", self)
+        self.rest_export_action.setCheckable(True)
+        self.rest_export_action.setChecked(self.ws.preview.enabled)
+        self.rest_export_action.toggled.connect(self.set_rest_export)
+        tools.addAction(self.rest_export_action)
         self._action(tools, "Ligament lengths vs. flexion", self.ws.compute_ligament_curve)
         view = mb.addMenu("&View")
         toolbar = QToolBar("View", self)
@@ -252,12 +285,22 @@ class MainWindow(QMainWindow):
         self.ws.open_deck(deck, setup)
 
     def open_deck(self, path: str | Path, setup: str | Path | None = None) -> None:
+        """Read ``path`` (and its setup: given, else ``<deck>.setup.json`` beside it) in the
+        worker, with a progress dialog; it joins the recent decks once it is open."""
         path = Path(path)
         if setup is None:
             guess = path.with_suffix(".setup.json")
             setup = guess if guess.is_file() else None
         self.ws.open_deck(path, setup)
-        self._add_recent(path)
+
+    def set_rest_export(self, enabled: bool) -> None:
+        """Whether the export runs on the slider's angle when it rests."""
+        if self.rest_export_action.isChecked() != bool(enabled):
+            self.rest_export_action.setChecked(bool(enabled))  # toggled: calls this again
+            return
+        self.ws.preview.enabled = bool(enabled)
+        if enabled:
+            self.ws.preview.start()
 
     def open_deck_dialog(self) -> None:
         path, _ = QFileDialog.getOpenFileName(self, "Open deck", self._last_dir(), DECK_FILTER)
@@ -381,6 +424,9 @@ class MainWindow(QMainWindow):
 
     # ------------------------------------------------------------------ tasks
     def _task_started(self, name: str) -> None:
+        if name == OPEN_TASKS[0] or (name in OPEN_TASKS and self._opening):
+            self._opening = True
+            self._show_open_progress(name)
         self.task_label.setText(name)
         self.progress.setValue(0)
         for w in (self.task_label, self.progress, self.cancel_button):
@@ -390,11 +436,46 @@ class MainWindow(QMainWindow):
         self.progress.setValue(int(1000 * max(0.0, min(1.0, fraction))))
         if message:
             self.task_label.setText(message)
+        dialog = self.open_progress
+        if dialog is not None and dialog.isVisible():
+            dialog.setValue(int(1000 * max(0.0, min(1.0, fraction))))
+            if message:
+                dialog.setLabelText(f"{self._open_title}\n{message}")
 
     def _task_finished(self, _name: str) -> None:
+        if self.ws.tasks.busy:  # the next task started from the last one's result
+            return
         for w in (self.task_label, self.progress, self.cancel_button):
             w.setVisible(False)
+        self._opening = False
+        if self.open_progress is not None:
+            self.open_progress.hide()
+
+    def _show_open_progress(self, name: str) -> None:
+        """The open-progress dialog (window-modal; Cancel stops the reading or precompute)."""
+        if self.open_progress is None:
+            dialog = QProgressDialog(self)
+            dialog.setWindowTitle("Opening")
+            dialog.setWindowModality(Qt.WindowModality.WindowModal)
+            dialog.setRange(0, 1000)
+            dialog.setAutoClose(False)
+            dialog.setAutoReset(False)
+            dialog.setMinimumDuration(0)
+            dialog.canceled.connect(self.ws.tasks.cancel)
+            self.open_progress = dialog
+        deck = self.ws.pending_deck or self.ws.deck_path
+        self._open_title = f"{name}: {deck.name if deck else ''}"
+        self.open_progress.setLabelText(self._open_title)
+        self.open_progress.setValue(0)
+        self.open_progress.show()
+
+    def _on_model_opened(self) -> None:
+        if self.ws.deck_path is not None:
+            self._add_recent(self.ws.deck_path)
+        self._update_title()
 
     def _update_title(self) -> None:
+        """``<deck>[*] — kneegui``: Qt shows the ``*`` while the setup has unsaved edits."""
         name = self.ws.deck_path.name if self.ws.deck_path else "demo"
-        self.setWindowTitle(f"kneegui — {name}")
+        self.setWindowTitle(f"{name}[*] — kneegui")
+        self.setWindowModified(self.ws.setup_dirty)

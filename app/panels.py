@@ -6,6 +6,10 @@
 - :class:`FlexionPanel`: the flexion slider and spin box.
 - :class:`QualityPanel`: heat-map metric, threshold, worst elements with zoom, cut-away.
 - :class:`LigamentPanel`: stretch colouring and the length-vs-flexion plot.
+- :class:`ViewIndicator`: the banner over the 3-D view saying what it shows (live mapping / as
+  exported) with its quality figures.
+- :class:`QualityCurvePanel`: worst Jacobian, inverted elements and largest volume change
+  against flexion, for the live mapping and the exported angles.
 """
 
 from __future__ import annotations
@@ -342,6 +346,7 @@ class FlexionPanel(QWidget):
         self.slider.valueChanged.connect(
             lambda v: self.ws.request_flexion(v / SLIDER_STEPS_PER_DEGREE)
         )
+        self.slider.sliderReleased.connect(ws.settle_flexion)
         self.spin.valueChanged.connect(self.ws.set_flexion)
         ws.coords_changed.connect(self.sync)
         ws.poser_changed.connect(self.sync)
@@ -361,9 +366,7 @@ class FlexionPanel(QWidget):
         if ws.poser is None:
             self.info.setText("preparing…" if ws.model is not None else "")
         else:
-            kind = getattr(ws.poser, "kind", "")
-            tag = " (smoothed)" if ws.smoothed else ""
-            self.info.setText(f"initial {ws.poser.initial_flexion:.1f}° · {kind}{tag}")
+            self.info.setText(f"initial {ws.poser.initial_flexion:.1f}°")
 
 
 # ---------------------------------------------------------------------------- quality
@@ -589,3 +592,178 @@ class LigamentPanel(QWidget):
     def showEvent(self, event) -> None:
         super().showEvent(event)
         self._update_table()
+
+
+# ---------------------------------------------------------------------------- what is shown
+#: Banner colours: (background, text) for the live mapping and the exported pose.
+INDICATOR_STYLES = {
+    "live mapping": ("#e0a030", "#1a1a1a"),
+    "as exported": ("#3a9a50", "#ffffff"),
+}
+
+
+class ViewIndicator(QLabel):
+    """One line over the 3-D view: what it shows and that pose's quality figures.
+
+    While the slider moves the text stays the same (no repaint per frame); at rest it gives the
+    angle, the figures (:class:`app.preview.PoseFigures`) and the export's progress.
+    """
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        self.kind = ""
+        self.setObjectName("view-indicator")
+        self.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.setContentsMargins(8, 3, 8, 3)
+        from PySide6.QtCore import QTimer
+
+        self._timer = QTimer(self)
+        self._timer.setSingleShot(True)
+        self._timer.setInterval(150)
+        self._timer.timeout.connect(self.refresh)
+        ws.coords_changed.connect(self._on_coords)
+        ws.model_changed.connect(self.refresh)
+        ws.poser_changed.connect(self.refresh)
+        ws.preview.changed.connect(self.refresh)
+        # the last live pose of a drag: its figures once no other pose follows within the
+        # debounce (measuring the whole model on every slider step would halve the frame rate)
+        ws.live_idle.connect(self._timer.start)
+        self.refresh()
+
+    def _on_coords(self) -> None:
+        if self.ws.view_kind != self.kind:
+            self.refresh()
+        else:
+            self._timer.start()
+
+    def moving(self) -> bool:
+        """Whether the slider is still moving (a live pose pending or the rest not reached)."""
+        ws = self.ws
+        return ws.pose_pending or ws.preview._timer.isActive()
+
+    def refresh(self) -> None:
+        ws = self.ws
+        kind = ws.view_kind
+        if kind != self.kind:
+            background, colour = INDICATOR_STYLES[kind]
+            self.setStyleSheet(
+                f"QLabel#view-indicator {{ background: {background}; color: {colour}; "
+                "font-weight: bold; }"
+            )
+            self.kind = kind
+        if ws.model is None:
+            self.setText("")
+            return
+        if ws.poser is None:
+            self.setText(f"{kind.upper()} · preparing the repositioner…")
+            return
+        if kind == "live mapping" and self.moving():
+            self.setText("LIVE MAPPING · moving: the export runs when the slider rests")
+            return
+        figures = ws.view_figures()
+        text = f"{kind.upper()} · {ws.flexion:.1f}° · {figures.text()}"
+        preview = ws.preview
+        if kind == "live mapping":
+            if preview.running_for is not None:
+                text += f" · exporting: {preview.message} {100 * preview.fraction:.0f} %"
+            elif preview.error:
+                text += f" · the export failed: {preview.error}"
+            elif not preview.enabled:
+                text += " · press Relax + smooth for the export"
+        self.setText(text)
+
+
+class QualityCurvePanel(QWidget):
+    """Worst Jacobian, inverted elements and largest volume change against flexion.
+
+    Lines: the live mapping, sampled over the validated range once per poser. Dots: each angle
+    the export path ran on. A dashed line marks the angle shown (moved once the slider rests).
+    """
+
+    def __init__(self, ws: Workspace, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.ws = ws
+        layout = QVBoxLayout(self)
+        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+        from matplotlib.figure import Figure
+        from PySide6.QtCore import QTimer
+
+        self.figure = Figure(figsize=(3.4, 4.2), dpi=90)
+        self.figure.subplots_adjust(left=0.22, right=0.97, top=0.94, bottom=0.1, hspace=0.12)
+        self.canvas = FigureCanvasQTAgg(self.figure)
+        self.canvas.setMinimumHeight(300)
+        layout.addWidget(self.canvas, 1)
+        self.axes = []
+        self._markers = []
+        self._timer = QTimer(self)
+        self._timer.setSingleShot(True)
+        self._timer.setInterval(300)
+        self._timer.timeout.connect(self._move_marker)
+        ws.preview.curve_changed.connect(self.redraw)
+        ws.coords_changed.connect(self._schedule)
+        self.redraw()
+
+    #: (figure attribute, axis label, live colour)
+    SERIES = (
+        ("worst_jacobian", "worst Jacobian", "#1f77b4"),
+        ("inverted", "inverted elements", "#d62728"),
+        ("max_volume_change_pct", "largest volume\nchange (%)", "#2ca02c"),
+    )
+
+    def series(self) -> dict[str, tuple]:
+        """What is plotted: per figure, (live angles, live values, exported angles, values)."""
+        preview = self.ws.preview
+        curve = preview.live_curve
+        angles = sorted(preview.exported_points)
+        out = {}
+        for name, _, _ in self.SERIES:
+            live = (curve.angles, getattr(curve, name)) if curve is not None else ((), ())
+            exported = [getattr(preview.exported_points[a], name) for a in angles]
+            out[name] = (*live, angles, exported)
+        return out
+
+    def redraw(self) -> None:
+        self.figure.clear()
+        data = self.series()
+        self.axes = self.figure.subplots(len(self.SERIES), 1, sharex=True)
+        for ax, (name, label, colour) in zip(self.axes, self.SERIES, strict=True):
+            live_x, live_y, exp_x, exp_y = data[name]
+            if len(live_x):
+                ax.plot(live_x, live_y, color=colour, lw=1.2, label=LIVE_LABEL)
+            if len(exp_x):
+                ax.plot(exp_x, exp_y, "o", color="k", ms=4, label=EXPORTED_LABEL)
+            ax.set_ylabel(label, fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+        self.axes[0].axhline(0.0, color="#888888", lw=0.6)
+        # an inverted element's determinant ratio can reach -20; the usable range is 0..1
+        self.axes[0].set_ylim(-1.05, 1.05)
+        self.axes[-1].set_xlabel("flexion (°)", fontsize=8)
+        if self.ws.preview.live_curve is None:
+            self.axes[0].set_title("live mapping: computing…", fontsize=8)
+        else:
+            self.axes[0].legend(fontsize=7, loc="lower left")
+        self._markers = []
+        self._move_marker()
+
+    def _schedule(self) -> None:
+        if self.isVisible():
+            self._timer.start()
+
+    def _move_marker(self) -> None:
+        for line in self._markers:
+            line.remove()
+        self._markers = [
+            ax.axvline(self.ws.flexion, color="#555555", lw=0.8, ls="--") for ax in self.axes
+        ]
+        if self.isVisible():  # a hidden (tabbed) canvas is drawn when it is shown
+            self.canvas.draw_idle()
+
+    def showEvent(self, event) -> None:
+        super().showEvent(event)
+        self._move_marker()
+
+
+LIVE_LABEL = "live mapping"
+EXPORTED_LABEL = "as exported"

@@ -10,16 +10,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kneegui.reposition import Repositioner
-from kneegui.reposition.pipeline import pose_model
+from kneegui.reposition.pipeline import PosedModel, pose_model
 
 
 @dataclass(frozen=True)
 class SmoothingOutcome:
-    """New coordinates, the export's report and a one-line summary."""
+    """New coordinates, the export's report and a one-line summary; ``posed`` is what an
+    export writes."""
 
     coords: NDArray[np.float64]
     report: dict[str, Any]
     message: str
+    posed: PosedModel
 
 
 def smooth_current(
@@ -31,7 +33,9 @@ def smooth_current(
     """Pose, relax and smooth the model at ``flexion_deg`` exactly as ``kneegui pose`` does
     (:func:`kneegui.reposition.pipeline.pose_model`), with a status line built from its report."""
     posed = pose_model(repositioner, flexion_deg, progress=progress, cancel=cancelled)
-    return SmoothingOutcome(np.array(posed.model.coords), posed.report, status_line(posed.report))
+    return SmoothingOutcome(
+        np.array(posed.model.coords), posed.report, status_line(posed.report), posed
+    )
 
 
 def status_line(report: Mapping[str, Any]) -> str:
@@ -54,7 +58,9 @@ def status_line(report: Mapping[str, Any]) -> str:
             f"{relax['seconds']:.1f} s)"
         )
     smooth = report.get("smoothing")
-    if smooth is not None:
+    if smooth is not None and not smooth["moved_nodes"]:
+        parts.append("smoothed: nothing to move")  # no Jacobian before / after to quote
+    elif smooth is not None:
         parts.append(
             f"smoothed: {smooth['moved_nodes']} nodes moved, worst Jacobian "
             f"{smooth['worst_jacobian_before']:.3f} -> {smooth['worst_jacobian_after']:.3f}, "

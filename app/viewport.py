@@ -128,6 +128,7 @@ class Viewport(QWidget):
         if "visibility" in dirty:
             for pid, actor in self.actors.items():
                 actor.SetVisibility(pid not in self.ws.hidden_parts)
+            self._update_points()  # hidden parts do not follow the pose
         if dirty & {"colour", "threshold", "visibility"}:
             self._update_colours()
         if "clip" in dirty:
@@ -174,20 +175,18 @@ class Viewport(QWidget):
         self.actors.clear()
         self._points.clear()
         for pid, surf in self.surfaces.items():
-            actor = self.plotter.add_mesh(
-                surf.mesh,
-                scalars="value",
-                show_scalar_bar=False,
-                cmap="viridis",
-                smooth_shading=False,
-                line_width=3,
-                render_lines_as_tubes=False,
-                name=f"part-{pid}",
-                reset_camera=False,
-                render=False,
-                nan_color="#b0b0b0",
+            # the mapper reads the mesh directly: pyvista's add_mesh would put a Python
+            # algorithm (active scalars) between them, run on every render of every part
+            surf.mesh.GetCellData().SetActiveScalars("value")
+            mapper = pv.DataSetMapper()
+            mapper.SetInputData(surf.mesh)
+            mapper.SetScalarModeToUseCellData()
+            mapper.SetScalarVisibility(False)
+            actor = pv.Actor(mapper=mapper)
+            actor.prop.line_width = 3
+            self.plotter.add_actor(
+                actor, reset_camera=False, name=f"part-{pid}", render=False, pickable=True
             )
-            actor.mapper.SetScalarVisibility(False)
             self.actors[pid] = actor
             self._points[pid] = vtk_to_numpy(surf.mesh.GetPoints().GetData())
         self._colour_parts()
@@ -203,8 +202,12 @@ class Viewport(QWidget):
             actor.prop.ambient = 0.15
 
     def _update_points(self) -> None:
-        coords = self.ws.coords
+        """Overwrite the points of the visible parts in place (a hidden part's points are
+        brought up to date when it is shown)."""
+        coords, hidden = self.ws.coords, self.ws.hidden_parts
         for pid, surf in self.surfaces.items():
+            if pid in hidden:
+                continue
             np.take(coords, surf.model_index, axis=0, out=self._points[pid])
             surf.mesh.GetPoints().Modified()
         for item in (self._highlight, self._focus):

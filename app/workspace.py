@@ -25,6 +25,7 @@ from PySide6.QtCore import QObject, QTimer, Signal
 
 from app.autosave import AUTOSAVE_DELAY_MS, autosave_path
 from app.poser import Poser, make_poser
+from app.preview import ExportedPose, ExportPreview, PoseFigures, pose_figures
 from kneegui.errors import GeometryError, KneeguiError, SetupError
 from kneegui.geometry import JointAxes, compute_joint_axes
 from kneegui.io.atomic import atomic_write_text
@@ -104,6 +105,7 @@ class Workspace(QObject):
     error(object) : a background task failed (the exception)
     status(str) : a one-line message for the status bar
     live_idle : the last requested slider pose is shown
+    dirty_changed(bool) : the setup has (True) or no longer has (False) unsaved edits
     autosave_found(object) : the deck just opened has an autosaved setup (its path) differing
         from the one loaded; :meth:`restore_autosave` loads it, :meth:`discard_autosave` drops it
     """
@@ -119,6 +121,7 @@ class Workspace(QObject):
     status = Signal(str)
     live_idle = Signal()
     autosave_found = Signal(object)
+    dirty_changed = Signal(bool)
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -127,6 +130,8 @@ class Workspace(QObject):
         self.tasks = TaskRunner(self)
         self.model: Model | None = None
         self.deck_path: Path | None = None
+        #: the deck being read (None when no open is running)
+        self.pending_deck: Path | None = None
         self.setup_path: Path | None = None
         self.setup_dict: dict[str, Any] = {}
         self.setup: JointSetup | None = None
@@ -135,7 +140,16 @@ class Workspace(QObject):
         self.poser: Poser | None = None
         self.flexion: float = 0.0
         self.coords: NDArray[np.float64] = np.zeros((0, 3))
-        self.smoothed = False
+        #: the angle last asked for (the live pose or the export may still be on their way)
+        self.target_flexion: float = 0.0
+        #: bumped by every pose request; exports answer one generation (app.preview)
+        self.pose_generation = 0
+        #: the export path's result while the view shows it (None: the live mapping)
+        self.exported: ExportedPose | None = None
+        self._custom_coords = False  # coordinates given by set_coords, not a pose
+        self._figures: tuple[NDArray[np.float64], PoseFigures] | None = None
+        #: the setup has edits not saved to a file
+        self.setup_dirty = False
         self._evaluator: QualityEvaluator | None = None
         self._quality: QualityResult | None = None
         self._pose_quality: tuple[NDArray[np.int64], QualityResult] | None = None
@@ -157,6 +171,7 @@ class Workspace(QObject):
         self._poser_stale = False
         self.tasks.finished.connect(lambda _name: QTimer.singleShot(0, self.on_task_finished))
         self._live = LivePoser(self)
+        self.preview = ExportPreview(self)
         #: False: no autosave is written, offered or removed (``--screenshot`` runs)
         self.autosave_enabled = True
         self._autosave_held = False  # an offered autosave is not overwritten until answered
@@ -189,7 +204,11 @@ class Workspace(QObject):
         self.setup_path = None if setup_path is None else Path(setup_path)
         self.setup_dict = dict(setup) if setup is not None else default_setup_dict(model)
         self.coords = np.array(model.coords, dtype=np.float64)
-        self.smoothed = False
+        self.exported = None
+        self._custom_coords = False
+        self._bump(schedule=False)
+        self.preview.reset()
+        self._set_dirty(False)
         self._evaluator = QualityEvaluator(model.blocks)
         self._initial_quality = self._evaluator.evaluate(model.coords)
         offered = heatmap_metrics(model)
@@ -205,6 +224,7 @@ class Workspace(QObject):
         self._undo.clear()
         self._redo.clear()
         self.flexion = 0.0
+        self.target_flexion = 0.0
         self.setup = None
         self.axes = None
         self._validate_setup()
@@ -218,22 +238,33 @@ class Workspace(QObject):
 
     def open_deck(self, path: str | Path, setup_path: str | Path | None = None) -> None:
         """Read a deck (and setup) in the worker thread; on success it becomes current."""
+        from kneegui.errors import Cancelled
         from kneegui.io.lsdyna import read_deck
 
         path = Path(path)
         setup_data = read_setup_json(setup_path) if setup_path is not None else None
 
         def work(progress, cancelled):
-            progress(0.1, f"reading {path.name}")
+            progress(0.05, f"reading {path.name}")
             model = read_deck(path)
+            if cancelled():
+                raise Cancelled(f"opening {path.name} cancelled")
             progress(1.0, f"read {model.n_nodes} nodes, {model.n_elements} elements")
             return model
 
         def done(model):
+            self.pending_deck = None
             self.load(model, setup_data, deck_path=path, setup_path=setup_path)
             self.status.emit(f"opened {path}")
 
-        self._start("Opening deck", work, done)
+        def failed(exc):
+            self.pending_deck = None
+            self.error.emit(exc)
+
+        self.pending_deck = path
+        if not self.tasks.start("Opening deck", work, done, failed):
+            self.pending_deck = None
+            self.status.emit(f"busy with {self.tasks.current_name}; try again when it ends")
 
     def open_setup(self, path: str | Path) -> None:
         """Read a setup file for the current model (a bad file raises; nothing changes then)."""
@@ -245,6 +276,7 @@ class Workspace(QObject):
         self.setup_path = path
         self.setup_dict = checked
         self._after_setup_edit()
+        self._set_dirty(False)  # what is shown is that file
 
     def _read_checked_setup(self, path: Path) -> dict[str, Any]:
         assert self.model is not None
@@ -262,6 +294,7 @@ class Workspace(QObject):
         out = save_setup(self.setup_dict, path)
         self.setup_path = Path(out)
         self.discard_autosave()
+        self._set_dirty(False)
         return Path(out)
 
     # ------------------------------------------------------------------ autosave
@@ -395,6 +428,8 @@ class Workspace(QObject):
                 return
             self.poser, self.ligaments = result
             self.ligament_curve = None
+            self.preview.reset()
+            self.preview.start_curve()
             self.poser_changed.emit()
             self.set_flexion(
                 self.flexion if self.flexion else self.poser.initial_flexion, force=True
@@ -403,7 +438,13 @@ class Workspace(QObject):
 
         self._start("Preparing the repositioner", work, done)
 
+    def _set_dirty(self, dirty: bool) -> None:
+        if dirty != self.setup_dirty:
+            self.setup_dirty = dirty
+            self.dirty_changed.emit(dirty)
+
     def _after_setup_edit(self) -> None:
+        self._set_dirty(True)
         if self.autosave_file is not None:
             self._autosave_timer.start()
         self._validate_setup()
@@ -556,11 +597,22 @@ class Workspace(QObject):
         deg = float(np.clip(degrees, *FLEXION_RANGE))
         self._live.discard()
         if self.poser is None:
-            self.flexion = deg
+            self.flexion = self.target_flexion = deg
             return
-        if deg == self.flexion and not force and not self.smoothed:
+        if deg == self.flexion and not force and not self._custom_coords:
             return
+        self.target_flexion = deg
+        self._bump(schedule=True)
         self._apply_pose(deg, self.poser.pose(deg))
+
+    def _bump(self, schedule: bool) -> None:
+        """A new pose is asked for: what runs for the previous one is stale from now on."""
+        self.pose_generation += 1
+        self.preview.pose_requested(schedule)
+
+    def settle_flexion(self) -> None:
+        """The slider was released: the export of its angle runs now."""
+        self.preview.settle()
 
     def set_live_cells(self, cells: NDArray[np.int64] | None) -> None:
         """Elements whose quality the view shows (measured with each slider pose), or None."""
@@ -590,32 +642,104 @@ class Workspace(QObject):
         """
         deg = float(np.clip(degrees, *FLEXION_RANGE))
         if self.poser is None:
-            self.flexion = deg
+            self.flexion = self.target_flexion = deg
             return
-        if deg == self.flexion and not self.smoothed and not self._live.busy:
+        if deg == self.target_flexion and not self._custom_coords:
             return
-        self._live.request(self.poser, deg, self._live_quality_job())
+        self.target_flexion = deg
+        self.pose_generation += 1  # (as _bump, with the pose pending before anyone is told)
+        self._live.request(self.poser, deg, self._live_quality_job(), self.pose_generation)
+        self.preview.pose_requested(schedule=True)
 
     @property
     def pose_pending(self) -> bool:
         """Whether a requested pose is still being computed."""
         return self._live.busy
 
-    def _apply_pose(self, deg: float, coords: NDArray[np.float64], pose_quality=None) -> None:
+    @property
+    def preview_pending(self) -> bool:
+        """Whether the export of the current angle is running or waiting to run."""
+        return self.preview.busy
+
+    @property
+    def smoothed(self) -> bool:
+        """Whether the view shows the export path's result (relaxed and smoothed)."""
+        return self.exported is not None
+
+    @property
+    def view_kind(self) -> str:
+        """``"as exported"`` or ``"live mapping"``: what the view shows."""
+        from app.preview import EXPORTED, LIVE
+
+        return EXPORTED if self.exported is not None else LIVE
+
+    def _apply_pose(
+        self,
+        deg: float,
+        coords: NDArray[np.float64],
+        pose_quality=None,
+        generation: int | None = None,
+    ) -> None:
+        if (
+            generation is not None
+            and self.exported is not None
+            and self.exported.generation >= generation
+        ):
+            return  # the export of this (or a later) request is already shown
         self.flexion = deg
         self.coords = coords
-        self.smoothed = False
+        self.exported = None
+        self._custom_coords = False
         self._quality = None
         self._pose_quality = pose_quality
         self.coords_changed.emit()
 
-    def set_coords(self, coords: NDArray[np.float64], smoothed: bool = True) -> None:
-        """Replace the current coordinates (e.g. after smoothing)."""
-        self.coords = np.array(coords, dtype=np.float64)
-        self.smoothed = smoothed
+    def show_exported(self, exported: ExportedPose) -> bool:
+        """Show the export path's result unless a newer pose was asked for meanwhile."""
+        if exported.generation != self.pose_generation or self.model is None:
+            return False
+        self.flexion = exported.flexion
+        self.coords = np.array(exported.coords, dtype=np.float64)
+        self.exported = exported
+        self._custom_coords = False
         self._quality = None
         self._pose_quality = None
         self.coords_changed.emit()
+        self.status.emit(exported.message)
+        return True
+
+    def set_coords(self, coords: NDArray[np.float64]) -> None:
+        """Replace the current coordinates with arbitrary ones (not a pose, not exported)."""
+        self._live.discard()
+        self._bump(schedule=False)
+        self.coords = np.array(coords, dtype=np.float64)
+        self.exported = None
+        self._custom_coords = True
+        self._quality = None
+        self._pose_quality = None
+        self.coords_changed.emit()
+
+    def view_figures(self) -> PoseFigures | None:
+        """Inverted elements, worst Jacobian and largest volume change of what is shown (the
+        export's report figures when it is shown; measured on demand otherwise)."""
+        if self.model is None or self._initial_quality is None:
+            return None
+        if self.exported is not None:
+            return self.exported.figures
+        if self._figures is None or self._figures[0] is not self.coords:
+            figures = pose_figures(self.model, self.quality(), self._initial_quality)
+            self._figures = (self.coords, figures)
+        return self._figures[1]
+
+    @property
+    def evaluator(self) -> QualityEvaluator | None:
+        """The quality evaluator of the current model's blocks."""
+        return self._evaluator
+
+    @property
+    def initial_quality(self) -> QualityResult | None:
+        """Quality of the model as read (the reference of volume changes)."""
+        return self._initial_quality
 
     def posed_model(self) -> Model:
         """The model at the current coordinates."""
@@ -798,8 +922,10 @@ class Workspace(QObject):
     def shutdown(self, msecs: int = 10000) -> None:
         """Cancel background work and wait for the worker threads (window closing, tests)."""
         self.tasks.cancel()
+        self.preview.reset()
         self._live.discard()
         self.tasks.wait(msecs)
+        self.preview.tasks.wait(msecs)
         self._live.wait(msecs)
 
     def on_task_finished(self) -> None:
@@ -824,29 +950,25 @@ class Workspace(QObject):
         return self._start("Ligament lengths", work, done)
 
     def smooth(self) -> bool:
-        """Relax and smooth the pose at the current flexion in the worker thread, exactly as
-        the export does (:func:`kneegui.reposition.pipeline.pose_model`): the result becomes
-        the current pose and the status line gives the report's warnings and what was done.
+        """Show the export of the current angle now (Relax + smooth): the export path
+        (:func:`kneegui.reposition.pipeline.pose_model`) runs in the preview worker, its result
+        becomes the view and the status line gives the report's warnings and what was done. A
+        failure is shown in a dialog.
 
-        Returns False (and says why) while no poser is ready.
+        Returns False (and says why) while no poser is ready or when the export is shown.
         """
         if self.model is None:
             return False
         if self.poser is None:
             self.status.emit("Relax + smooth waits for the poser (precomputing)")
             return False
-        from app import smoothing
-
-        poser, flexion = self.poser, self.flexion
-
-        def work(progress, cancelled):
-            return smoothing.smooth_current(poser, flexion, progress, cancelled)
-
-        def done(result):
-            self.set_coords(result.coords, smoothed=True)
-            self.status.emit(result.message)
-
-        return self._start("Smoothing", work, done)
+        if self.exported is not None and self.exported.generation == self.pose_generation:
+            self.status.emit("the view already shows the export of this angle")
+            return False
+        if self._custom_coords:
+            self.set_flexion(self.target_flexion, force=True)
+        self.preview.start(explicit=True)
+        return True
 
     def export(self, path: str | Path, force: bool = False, flatten: bool = False) -> bool:
         """Write the posed deck (worker thread, atomic).
@@ -858,13 +980,29 @@ class Workspace(QObject):
         """
         if self.model is None:
             raise KneeguiError("nothing to export")
-        n_inv = self.quality().n_inverted
-        if n_inv and not force:
-            raise ExportBlocked(
-                f"{n_inv} inverted element(s) at {self.flexion:.1f}°: smooth first, or force "
-                "the export"
-            )
-        posed = self.posed_model()
+        exported = self.exported
+        if exported is not None:
+            # what is shown is the export path's result: written as it is, not solved again
+            n_inv = exported.figures.inverted
+            if not exported.posed.passes_gate and not force:
+                raise ExportBlocked(
+                    f"the export at {exported.flexion:g}° fails the quality gate: "
+                    f"{'; '.join(exported.posed.gate_reasons)}; force the export to write it"
+                )
+            posed = exported.posed.model
+        else:
+            n_inv = self.quality().n_inverted
+            if n_inv and not force:
+                waiting = (
+                    " (the export of this angle is still running: wait for 'as exported')"
+                    if self.preview_pending
+                    else ""
+                )
+                raise ExportBlocked(
+                    f"{n_inv} inverted element(s) in the live mapping at {self.flexion:.1f}°"
+                    f"{waiting}: relax and smooth first, or force the export"
+                )
+            posed = self.posed_model()
         target = Path(path)
 
         def work(progress, cancelled):
@@ -878,8 +1016,10 @@ class Workspace(QObject):
             progress(1.0, "written")
             return target
 
+        kind = self.view_kind
+
         def done(result):
-            self.status.emit(f"exported {result} ({n_inv} inverted)")
+            self.status.emit(f"exported {result} ({kind}, {n_inv} inverted)")
 
         return self._start("Exporting", work, done)
 
@@ -908,8 +1048,9 @@ class LivePoser(QObject):
     def busy(self) -> bool:
         return self._running or self._next is not None
 
-    def request(self, poser: Poser, degrees: float, measure=None) -> None:
-        self._next = (poser, degrees, measure)
+    def request(self, poser: Poser, degrees: float, measure=None, tag: int | None = None) -> None:
+        """Pose at ``degrees`` (``tag``: the workspace's pose generation of the request)."""
+        self._next = (poser, degrees, measure, tag)
         if not self._running:
             self._start()
 
@@ -924,7 +1065,7 @@ class LivePoser(QObject):
     def _start(self) -> None:
         from PySide6.QtCore import QRunnable
 
-        poser, degrees, measure = self._next
+        poser, degrees, measure, tag = self._next
         self._next = None
         self._running = True
         generation, relay = self._generation, self._relay
@@ -938,21 +1079,21 @@ class LivePoser(QObject):
                         quality = measure(result)
                 except Exception as exc:  # shown by the workspace's error boundary
                     result = exc
-                relay.done.emit((generation, poser, degrees, result, quality))
+                relay.done.emit((generation, poser, degrees, result, quality, tag))
 
         job = Job()
         job.setAutoDelete(True)
         self._pool.start(job)
 
     def _on_done(self, payload) -> None:
-        generation, poser, degrees, result, quality = payload
+        generation, poser, degrees, result, quality, tag = payload
         self._running = False
         ws = self._ws
         if generation == self._generation and poser is ws.poser:
             if isinstance(result, Exception):
                 ws.error.emit(result)
             else:
-                ws._apply_pose(degrees, result, quality)
+                ws._apply_pose(degrees, result, quality, tag)
         if self._next is not None:
             self._start()
         elif not self._running:

@@ -7,6 +7,7 @@ bench/paper_table1.csv (the paper's own figures, with their source); nothing is 
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -517,6 +518,15 @@ def machine_lines(results: dict) -> list[str]:
     ]
 
 
+def export_scaling_lines() -> list[str]:
+    """The export-at-scale section (:mod:`bench.export_bench`), from its saved results."""
+    from bench.export_bench import RESULTS, markdown
+
+    if not RESULTS.exists():
+        return []
+    return [*markdown(json.loads(RESULTS.read_text())), ""]
+
+
 def to_markdown(results: dict) -> str:
     """The whole docs/benchmarks.md text from the results dict."""
     cfg = results["config"]
@@ -535,6 +545,7 @@ def to_markdown(results: dict) -> str:
     lines += targets_table(results)
     lines += scaling_table(results)
     lines += comparison_tables(results)
+    lines += export_scaling_lines()
     lines += [*METHOD_NOTES.splitlines(), ""]
     lines += machine_lines(results)
     return "\n".join(lines)

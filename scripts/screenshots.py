@@ -8,6 +8,8 @@ the default demo leg and saves:
   away) and the Quality panel;
 - docs/images/gui-landmarks.png: the femur with the picked condyle nodes, the fitted circles,
   the F-E and L-R axes and the Landmarks panel;
+- docs/images/gui-exported90.png: the same pose as exported, its banner ("AS EXPORTED" with
+  its figures) and the quality-against-flexion plot;
 - docs/images/gui-ligaments.png: ligament stretch at 90° and the length-vs-flexion plot.
 """
 
@@ -35,10 +37,11 @@ def _pump(app, seconds: float = 0.3) -> None:
 
 def _wait(app, window) -> None:
     start = time.monotonic()
-    while window.ws.poser is None or window.ws.tasks.busy:
+    ws = window.ws
+    while ws.poser is None or ws.tasks.busy or ws.preview_pending or ws.pose_pending:
         app.processEvents()
         time.sleep(0.01)
-        if time.monotonic() - start > 300:
+        if time.monotonic() - start > 1800:
             raise RuntimeError(f"window not ready: {window.last_error}")
     _pump(app)
 
@@ -113,6 +116,15 @@ def main(argv: list[str] | None = None) -> int:
     _pump(app, 0.5)
     out2 = window.save_screenshot(args.outdir / "gui-flexion90-jacobian.png")
 
+    # 2b. the same pose as exported: the banner and the quality-against-flexion plot
+    qp.clip_on.setChecked(False)
+    window.docks["Quality vs flexion"].raise_()
+    vp.flush()
+    vp.camera_preset("lateral")
+    vp.plotter.camera.zoom(1.1)
+    _pump(app, 0.8)
+    out2b = window.save_screenshot(args.outdir / "gui-exported90.png")
+
     # 3. ligament stretch at 90 degrees with the length curves
     qp.clip_on.setChecked(False)
     keep = (
@@ -134,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     _pump(app, 0.5)
     out3 = window.save_screenshot(args.outdir / "gui-ligaments.png")
     window.close()
-    for out in (out1, out2, out3):
+    for out in (out1, out2, out2b, out3):
         print(out)
     return 0
 

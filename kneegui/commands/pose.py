@@ -7,6 +7,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 from kneegui.errors import SetupError
 from kneegui.io.atomic import atomic_write_text
@@ -20,6 +21,55 @@ NAME = "pose"
 HELP = "Re-pose the knee of a deck to one or more flexion angles and write the posed deck(s)."
 
 EXIT_QUALITY_GATE = 3
+
+
+class ProgressBar:
+    """A one-line progress bar on a terminal (``[#####     ]  45% relaxing soft tissue``),
+    redrawn at most every ``interval`` seconds; silent when the stream is not a terminal, so
+    pipes and logs get only the result lines.
+
+    Parameters
+    ----------
+    label : str
+        Printed before the bar (e.g. the angle).
+    stream : text stream, optional
+        Default: standard error.
+    interval : float
+        Smallest time between redraws (seconds).
+    """
+
+    WIDTH = 24
+
+    def __init__(self, label: str, stream: TextIO | None = None, interval: float = 0.1) -> None:
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self.interval = interval
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._last = float("-inf")
+        self._shown = 0
+
+    def __call__(self, fraction: float, message: str) -> None:
+        """Draw ``fraction`` (0..1) and ``message`` (a ``progress`` callback)."""
+        now = time.monotonic()
+        if not self.enabled or (now - self._last < self.interval and fraction < 1.0):
+            return
+        self._last = now
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        filled = round(self.WIDTH * fraction)
+        line = (
+            f"{self.label} [{'#' * filled}{' ' * (self.WIDTH - filled)}] "
+            f"{100 * fraction:3.0f}% {message}"
+        )
+        self.stream.write("\r" + line.ljust(self._shown))
+        self.stream.flush()
+        self._shown = len(line)
+
+    def close(self) -> None:
+        """Erase the bar (the result line is printed in its place)."""
+        if self.enabled and self._shown:
+            self.stream.write("\r" + " " * self._shown + "\r")
+            self.stream.flush()
+            self._shown = 0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -60,7 +110,11 @@ def run(args: argparse.Namespace) -> int:
     options = RepositionOptions(method=args.method) if args.method else RepositionOptions()
     t_setup = time.perf_counter() - t
     t = time.perf_counter()
-    repositioner = Repositioner(model, setup, options)
+    bar = ProgressBar("precompute")
+    try:
+        repositioner = Repositioner(model, setup, options, progress=bar)
+    finally:
+        bar.close()
     t_pre = time.perf_counter() - t
     deck_name = Path(args.model).name
     several = len(args.flexion) > 1
@@ -95,17 +149,22 @@ def run(args: argparse.Namespace) -> int:
     }
     status = 0
     for deg, out, report_path in jobs:
-        posed = export_pose(
-            repositioner,
-            deg,
-            out,
-            model_path=args.model,
-            smooth=not args.no_smooth,
-            force=args.force,
-            flatten=args.flatten,
-            overwrite=args.force,
-            context_timings=context_timings,
-        )
+        bar = ProgressBar(f"{deg:g} deg")
+        try:
+            posed = export_pose(
+                repositioner,
+                deg,
+                out,
+                model_path=args.model,
+                smooth=not args.no_smooth,
+                force=args.force,
+                flatten=args.flatten,
+                overwrite=args.force,
+                context_timings=context_timings,
+                progress=bar,
+            )
+        finally:
+            bar.close()
         report = posed.report
         written = report["written"]
         if report_path is not None:

@@ -171,6 +171,7 @@ class RelaxReport:
     contact_nodes: int = 0
     deepest_penetration: float = 0.0
     seconds: float = 0.0
+    region_seconds: float = 0.0  # finding the degraded region (part of ``seconds``)
     history: list[dict[str, float]] = field(default_factory=list)
     quality: QualityOptimisationReport | None = None  # what the quality optimisation did
 

@@ -308,6 +308,7 @@ class QualityOptimisationReport:
     evaluations: int = 0
     max_displacement: float = 0.0
     seconds: float = 0.0
+    region_seconds: float = 0.0  # the caller's search for the region (not in ``seconds``)
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""

@@ -50,6 +50,7 @@ def smooth_posed_model(
     position_guard: PositionGuard | None = None,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
+    quality: QualityResult | None = None,
 ) -> tuple[Model, SmoothingReport]:
     """Smooth the soft tissue of a posed model around its degraded elements.
 
@@ -78,6 +79,8 @@ def smooth_posed_model(
         ``soft_interfaces``).
     position_guard, progress, cancel : callable, optional
         See :func:`kneegui.meshopt.smooth_mesh`.
+    quality : QualityResult, optional
+        The quality of ``posed`` (every element) when the caller has it already.
 
     Returns
     -------
@@ -88,7 +91,8 @@ def smooth_posed_model(
     opt = options or SmoothOptions()
     soft = list(soft_tissue_part_ids)
     fixed = list(fixed_part_ids)
-    quality = compute_quality(posed.coords, posed.blocks)
+    if quality is None:
+        quality = compute_quality(posed.coords, posed.blocks)
     initial_quality = (
         compute_quality(initial.coords, initial.blocks) if isinstance(initial, Model) else initial
     )

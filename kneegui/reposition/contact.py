@@ -19,7 +19,9 @@ rest place relative to that bone (outside it at rest) and stops where that way l
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +31,10 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
+from kneegui.reposition.rigid_blend import DIRECT_SOLVE_MAX, block_cg
+
+#: Points per chunk of a threaded :meth:`BoneSurfaceDistance.query`.
+QUERY_CHUNK = 2048
 
 
 def _incident(triangles: NDArray[np.int64], nodes: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -95,15 +101,30 @@ class BoneSurfaceDistance:
         self.node_tris = _incident(tris, np.arange(len(nodes_xyz)))
         self.tree = cKDTree(nodes_xyz)
 
-    def query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def query(
+        self, p: NDArray[np.float64], threads: int | None = None
+    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """For points (M, 3) in the rest frame: signed distance (M,) (+ outside), closest surface
         point (M, 3), unit outward (pseudo-)normal there (M, 3), and the distance to the nearest
         surface node (M,).
 
         The closest point is exact among the triangles around the nearest surface node; the
         sign comes from the mean normal of every triangle as close as the best (at a shared edge
-        or vertex one face's normal alone can give the wrong side).
+        or vertex one face's normal alone can give the wrong side). Many points are split into
+        chunks of :data:`QUERY_CHUNK` measured on ``threads`` threads (default: every core, at
+        most 8); each point's result is worked out on its own, so it does not depend on the
+        thread count.
         """
+        p = np.asarray(p, dtype=np.float64)
+        threads = threads or min(os.cpu_count() or 1, 8)
+        if threads > 1 and len(p) >= 2 * QUERY_CHUNK:
+            starts = range(0, len(p), QUERY_CHUNK)
+            with ThreadPoolExecutor(threads) as pool:
+                parts = list(pool.map(lambda s: self._query(p[s : s + QUERY_CHUNK]), starts))
+            return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
+        return self._query(p)
+
+    def _query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         node_distance, k = self.tree.query(p)
         tris = self.node_tris[k]
         m, width = tris.shape
@@ -213,7 +234,12 @@ class BoneContact:
                 ),
                 shape=(len(free), len(free)),
             )
-            self._solve = spla.splu(lap.tocsc()).solve
+            if len(free) <= DIRECT_SOLVE_MAX:
+                self._solve = spla.splu(lap.tocsc()).solve
+            else:
+                # a whole-body model's soft tissue: an LU grows super-linearly (time and memory);
+                # the pushes are local, so solve only around them
+                self._solve = LocalLaplaceSolve(lap)
             self._coupling = sp.csr_matrix(
                 (np.concatenate(cval), (np.concatenate(crow), np.concatenate(ccol))),
                 shape=(len(free), len(self.candidates)),
@@ -270,6 +296,80 @@ class BoneContact:
         if len(self.free):
             positions[self.free] += self._solve(self._coupling @ push)
         return len(moved)
+
+
+class LocalLaplaceSolve:
+    """``solve(rhs)`` for a sparse Laplacian whose right-hand side is non-zero near a few nodes
+    (the pushes of the bone contact): conjugate gradients on the nodes within ``hops`` mesh
+    edges of them, zero beyond, with ``hops`` doubled until the solution at the edge of that
+    region is below ``tolerance`` times its largest value (or the region is everything).
+
+    The soft tissue lies between the bones (held) and the skin, so a push fades within a few
+    tissue thicknesses: the knee's pushes never reach the rest of a whole-body model, and its
+    nodes are not read.
+
+    Parameters
+    ----------
+    matrix : (n, n) sparse matrix
+        Symmetric positive definite, with the mesh's adjacency as its pattern.
+    hops : int
+        Initial reach of the region (mesh edges).
+    tolerance : float
+        Relative size of the solution allowed at the region's edge.
+    """
+
+    def __init__(self, matrix: sp.spmatrix, hops: int = 16, tolerance: float = 1e-7) -> None:
+        self.matrix = sp.csr_matrix(matrix)
+        self.inv_diag = 1.0 / self.matrix.diagonal()
+        self.hops = hops
+        self.tolerance = tolerance
+        self.last_region = 0  # nodes the last solve worked on
+
+    def _grow(self, mask: NDArray[np.bool_], frontier: NDArray[np.int64], hops: int) -> None:
+        ptr, idx = self.matrix.indptr, self.matrix.indices
+        for _ in range(hops):
+            if len(frontier) == 0:
+                return
+            counts = ptr[frontier + 1] - ptr[frontier]
+            starts = np.repeat(ptr[frontier] - np.cumsum(counts) + counts, counts)
+            nbrs = idx[starts + np.arange(int(counts.sum()))]
+            nbrs = np.unique(nbrs[~mask[nbrs]])
+            mask[nbrs] = True
+            frontier = nbrs
+
+    def __call__(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The solution (n, k) of ``matrix @ x = rhs``."""
+        n = self.matrix.shape[0]
+        rhs = np.asarray(rhs, dtype=np.float64).reshape(n, -1)
+        out = np.zeros_like(rhs)
+        seeds = np.flatnonzero(np.any(rhs != 0, axis=1))
+        if len(seeds) == 0:
+            return out
+        hops = self.hops
+        while True:
+            mask = np.zeros(n, dtype=bool)
+            mask[seeds] = True
+            self._grow(mask, seeds, hops)
+            region = np.flatnonzero(mask)
+            sub = self.matrix[region][:, region]
+            x = block_cg(
+                sub,
+                rhs[region],
+                np.zeros((len(region), rhs.shape[1])),
+                self.inv_diag[region],
+                rtol=1e-10,
+            )
+            if len(region) == n:
+                break
+            # the region's edge: nodes with a neighbour outside it
+            outside = (~mask).astype(np.float64)
+            edge = (self.matrix[region] @ outside) != 0
+            if np.abs(x[edge]).max(initial=0.0) <= self.tolerance * np.abs(x).max(initial=0.0):
+                break
+            hops *= 2
+        out[region] = x
+        self.last_region = len(region)
+        return out
 
 
 class BoneDepthGuard:

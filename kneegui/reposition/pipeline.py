@@ -8,16 +8,17 @@ solve the bones and word the warnings the same way.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from kneegui.geometry.axes import measure_flexion
 from kneegui.io.lsdyna import write_deck
-from kneegui.model import Model
+from kneegui.model import ElementBlock, Model
 from kneegui.quality import (
     compute_quality,
     jsonable,
@@ -25,7 +26,7 @@ from kneegui.quality import (
     summarize_quality,
     volume_change_pct,
 )
-from kneegui.quality.metrics import QualityResult
+from kneegui.quality.metrics import METRICS, ElementQuality, QualityResult
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE, BoneOverlap
 from kneegui.reposition.preflight import Preflight, preflight_of
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
@@ -93,6 +94,46 @@ def _volume_change(
         },
         "soft_elements": len(changes),
     }
+
+
+def requalify(
+    previous: QualityResult,
+    previous_coords: NDArray[np.float64],
+    coords: NDArray[np.float64],
+    blocks: Mapping[str, ElementBlock],
+) -> QualityResult:
+    """The quality at ``coords`` from the quality at ``previous_coords``: only the elements
+    with a node that moved are measured again (the smoothing moves a few thousand nodes of a
+    model that may have millions), the others keep their values. Same values as measuring
+    every element.
+
+    Parameters
+    ----------
+    previous : QualityResult
+        Quality at ``previous_coords`` (full blocks or rows, as measured).
+    previous_coords, coords : (N, 3) ndarray
+        Coordinates before and after.
+    blocks : mapping of str to ElementBlock
+    """
+    moved = np.any(previous_coords != coords, axis=1)
+    rows = {}
+    for etype, q in previous.by_type.items():
+        changed = moved[blocks[etype].conn[q.rows]].any(axis=1)
+        rows[etype] = np.flatnonzero(changed)
+    fresh = compute_quality(
+        coords, blocks, rows={e: previous[e].rows[r] for e, r in rows.items() if len(r)}
+    )
+    out = {}
+    for etype, q in previous.by_type.items():
+        r = rows[etype]
+        if len(r) == 0:
+            out[etype] = q
+            continue
+        values = {name: getattr(q, name).copy() for name in (*METRICS, "inverted")}
+        for name in values:
+            values[name][r] = getattr(fresh[etype], name)
+        out[etype] = ElementQuality(etype=etype, rows=q.rows, **values)
+    return QualityResult(out)
 
 
 def pose_warnings(
@@ -184,7 +225,7 @@ def pose_model(
     model, setup = repositioner.model, repositioner.setup
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    initial_q = compute_quality(model.coords, model.blocks)
+    initial_q = repositioner.initial_quality()  # once per setup
     timings["quality_initial"] = time.perf_counter() - t
     report_progress(0.05, "posing")
 
@@ -205,10 +246,14 @@ def pose_model(
     # the mapping's stages (pose_bones, pose_blend, ...) and the relaxation's, as before
     if relaxation is not None:  # no key when nothing was relaxed (reports read it as absent)
         timings["pose_relax"] = relaxation.seconds
+        # finding the region to relax, within pose_relax
+        timings["relax_region"] = relaxation.region_seconds + (
+            relaxation.quality.region_seconds if relaxation.quality is not None else 0.0
+        )
     timings["pose"] = result.timings_s["total"] + timings.get("pose_relax", 0.0)
     posed = model.with_coords(improved.relaxed)
     t = time.perf_counter()
-    posed_q = compute_quality(posed.coords, posed.blocks)
+    posed_q = repositioner.quality_of(posed.coords)  # the smoothing measured it already
     timings["quality_posed"] = time.perf_counter() - t
     soft_parts = set(setup.parts_of(*SOFT_ROLES))
     quality: dict[str, Any] = {"initial": _stats(model, initial_q), "posed": _stats(posed, posed_q)}
@@ -216,7 +261,9 @@ def pose_model(
     if smoothing is not None:
         timings["smoothing"] = smoothing.seconds
         final = model.with_coords(coords)
-        final_q = compute_quality(final.coords, final.blocks)
+        t = time.perf_counter()
+        final_q = requalify(posed_q, posed.coords, final.coords, final.blocks)
+        timings["quality_smoothed"] = time.perf_counter() - t
         quality["smoothed"] = _stats(final, final_q)
     summary = summarize_quality(final, final_q, initial=initial_q)
     t = time.perf_counter()
@@ -285,6 +332,8 @@ def export_pose(
     flatten: bool = False,
     overwrite: bool = False,
     context_timings: dict[str, float] | None = None,
+    progress: ProgressCallback | None = None,
+    cancel: Callable[[], bool] | None = None,
 ) -> PosedModel:
     """Pose one angle with :func:`pose_model` and write the posed deck: the export step that
     ``kneegui pose``, ``kneegui batch`` and the GUI's export share.
@@ -310,6 +359,8 @@ def export_pose(
         (:mod:`kneegui.io.output_plan`: another deck's includes, files the user did not name).
     context_timings : dict, optional
         Timings of the caller's stages (read, setup, precompute) added to the report's.
+    progress, cancel : callable, optional
+        As for :func:`pose_model`; the write is the last 5 % of the progress.
 
     Returns
     -------
@@ -317,14 +368,23 @@ def export_pose(
         Its report has ``model`` (absolute path) and ``written`` (the files written, none when
         the gate failed without ``force``). The report file is the caller's to write.
     """
-    posed = pose_model(repositioner, flexion_deg, smooth=smooth)
+    report_progress = progress or (lambda fraction, message: None)
+
+    def pose_progress(fraction: float, message: str) -> None:
+        report_progress(0.95 * fraction, message)
+
+    posed = pose_model(
+        repositioner, flexion_deg, smooth=smooth, progress=pose_progress, cancel=cancel
+    )
     report = posed.report
     report["timings_s"].update(context_timings or {})
     report["model"] = str(Path(model_path).resolve())
     written = []
     if posed.passes_gate or force:
+        report_progress(0.95, "writing the deck")
         t = time.perf_counter()
         written = write_deck(posed.model, out, flatten=flatten, overwrite=overwrite)
         report["timings_s"]["write"] = time.perf_counter() - t
     report["written"] = [str(p) for p in written]
+    report_progress(1.0, "written")
     return posed

@@ -25,7 +25,9 @@ Element count, node ids and connectivity never change; only the free nodes move.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -559,7 +561,9 @@ class ElasticRelaxation:
             _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
             report.deepest_penetration = float(max(0.0, -depth.min()))
             penetrating = self.contact_nodes[depth < -self.options.penetration_tolerance]
+        t = time.perf_counter()
         free = self.degraded_region(x, penetrating)
+        report.region_seconds = time.perf_counter() - t
         report.free_nodes = len(free)
         d_min = np.inf  # nothing tangled
         if len(free):
@@ -725,10 +729,12 @@ class ElasticRelaxation:
         if self.blocks is None or self.aims is None:
             return x, None
         order = self.contour_order
+        t = time.perf_counter()
         crossing = None if order is None else order.crossing(x)
         free = shortfall_region(
             x, self.blocks, self.aims, self.free, self.options.rings, seeds=crossing
         )
+        region_seconds = time.perf_counter() - t
         if len(free) == 0:
             return x, None
         contact = self.contact_nodes[np.isin(self.contact_nodes, free)]
@@ -756,7 +762,7 @@ class ElasticRelaxation:
                 progress=progress,
                 cancel=cancel,
             )
-            return self.carry_midside(x, out), report
+            return self.carry_midside(x, out), replace(report, region_seconds=region_seconds)
         except ValueError:  # an element stayed inverted or flat: the input has one (issue #22)
             raise GeometryError(
                 "the relaxation cannot untangle the soft tissue it moves: an element there is "

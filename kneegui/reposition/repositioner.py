@@ -407,6 +407,7 @@ class Repositioner:
         self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
         self._order_contours: SkinContours | None = None  # for blend: the relaxation's order
         self._initial_quality: QualityResult | None = None  # the smoothing's reference
+        self._quality_memo: tuple[NDArray[np.float64], QualityResult] | None = None
         self._progress(1.0, "ready")
 
     # ---------------------------------------------------------------------- precompute
@@ -448,6 +449,7 @@ class Repositioner:
             surfaces,
             self.options.regularisation,
             prior_strength=self._bone_coupling(surfaces),
+            cancel=self._cancel,
         )
 
     def _bone_coupling(self, surfaces: list[NDArray[np.int64]]) -> NDArray[np.float64]:
@@ -529,16 +531,41 @@ class Repositioner:
             length_scale=self.length_scale,
         )
 
+    def initial_quality(self) -> QualityResult:
+        """Quality of the initial model (every element), computed once and shared by the
+        relaxation's aims, the smoothing's goals and the export's report."""
+        if self._initial_quality is None:
+            self._initial_quality = compute_quality(self.model.coords, self.model.blocks)
+        return self._initial_quality
+
+    def quality_of(self, coords: NDArray[np.float64]) -> QualityResult:
+        """Quality of every element at ``coords``, remembered for the last coordinates asked
+        about: the smoothing and the export's report measure the same relaxed pose."""
+        memo = self._quality_memo
+        if memo is not None and memo[0].shape == coords.shape and np.array_equal(memo[0], coords):
+            return memo[1]
+        result = compute_quality(coords, self.model.blocks)
+        self._quality_memo = (np.array(coords, copy=True), result)
+        return result
+
     def _elastic_relaxation(self) -> ElasticRelaxation:
         model, g = self.model, self.groups
         soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
-        solids = {e: np.isin(b.part_ids, soft_parts) for e, b in model.blocks.items()}
+        free = self._soft_near_joint()
+        near = np.zeros(model.n_nodes, dtype=bool)
+        near[free] = True
+        # only the soft elements with a node the relaxation may move: the relaxation keeps no
+        # other (their corners would have no free node), and building the geometry of every
+        # soft element of a whole-body model cost more than the knee's relaxation itself
+        solids = {
+            e: np.isin(b.part_ids, soft_parts) & near[b.conn].any(axis=1)
+            for e, b in model.blocks.items()
+        }
         shells = {e: solids.pop(e) for e in ("quad4", "tri3") if e in solids}
         tets = corner_tetrahedra(model.blocks, solids)
         face_tets, virtual = shell_face_tetrahedra(model.blocks, shells, solids, model.n_nodes)
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
-        free = self._soft_near_joint()
-        initial = compute_quality(model.coords, model.blocks)
+        initial = self.initial_quality()
         options = (self.options.improvement.relax or RelaxOptions()).scaled(self.length_scale)
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
@@ -830,13 +857,12 @@ class Repositioner:
         movable, fixed = smoothing_parts(self.setup)
 
         def smooth(coords, options, progress, cancel):
-            if self._initial_quality is None:
-                self._initial_quality = compute_quality(self.model.coords, self.model.blocks)
             smoothed, report = smooth_posed_model(
                 self.model.with_coords(coords),
                 movable,
                 fixed,
-                self._initial_quality,
+                self.initial_quality(),
+                quality=self.quality_of(coords),
                 options=options,
                 position_guard=self.bone_depth_guard(coords, bone),
                 progress=progress,

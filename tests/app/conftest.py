@@ -60,8 +60,12 @@ def synthetic_files(tmp_path_factory):
 
 
 def wait_idle(qtbot, ws, timeout: float = 120.0) -> None:
-    """Wait until no background task runs and pending signals are delivered."""
-    qtbot.waitUntil(lambda: not ws.tasks.busy and not ws.pose_pending, timeout=int(timeout * 1000))
+    """Wait until no background task runs (the export of the resting angle included) and
+    pending signals are delivered."""
+    qtbot.waitUntil(
+        lambda: not ws.tasks.busy and not ws.pose_pending and not ws.preview_pending,
+        timeout=int(timeout * 1000),
+    )
     end = time.monotonic() + 0.05
     from PySide6.QtWidgets import QApplication
 
@@ -71,12 +75,18 @@ def wait_idle(qtbot, ws, timeout: float = 120.0) -> None:
 
 @pytest.fixture
 def window(qtbot):
-    """The real main window, shown (under Xvfb) and closed after the test."""
+    """The real main window, shown (under Xvfb) and closed after the test.
+
+    It keeps the live mapping when the slider rests (View > "Show the export when the slider
+    rests" off), so that the tests of the live path see it; tests/app/test_gui_preview.py
+    switches the export at rest on.
+    """
     if not os.environ.get("DISPLAY"):
         pytest.skip("GUI tests need a display (run under xvfb-run)")
     from app.main_window import MainWindow
 
     win = MainWindow()
+    win.set_rest_export(False)
     qtbot.addWidget(win)
     win.show()
     qtbot.waitExposed(win)

@@ -1,0 +1,338 @@
+"""What the window shows: the live mapping while the slider moves, the export once it rests.
+
+While the flexion slider is dragged the view follows the repositioner's cheap mapping
+(:meth:`kneegui.reposition.Repositioner.pose`). When it rests (:data:`REST_DELAY_MS` after the
+last move, or at once on release) :class:`ExportPreview` runs the export path,
+:func:`kneegui.reposition.pipeline.pose_model` with relaxation and smoothing, on the resting
+angle in a worker thread; its result (an :class:`ExportedPose`) becomes the view and is what
+File > Export writes, without solving again.
+
+Every pose request bumps the workspace's *pose generation*; a job carries the generation it
+was started for, stops (raises :class:`kneegui.errors.Cancelled` at the engine's next check) as
+soon as the generation moves on, and a result whose generation is no longer current is dropped,
+so a stale export is never shown.
+
+:class:`PoseFigures` are the three figures the indicator, the quality-against-flexion plot and
+the CLI report (``kneegui pose --report``) share: inverted elements, worst corner Jacobian,
+largest element volume change of the solids.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from PySide6.QtCore import QObject, QTimer, Signal
+
+from app.tasks import TaskRunner
+from kneegui.errors import Cancelled
+from kneegui.model import Model
+from kneegui.quality import QualityEvaluator, QualityResult, volume_change_pct
+from kneegui.reposition.pipeline import PosedModel
+from kneegui.topology import SOLID_TYPES
+
+if TYPE_CHECKING:
+    from app.workspace import Workspace
+
+#: How long the slider must rest before the export path runs on its angle (ms).
+REST_DELAY_MS = 300
+#: Spacing of the live mapping's quality-against-flexion samples (degrees).
+CURVE_STEP_DEG = 5.0
+LIVE = "live mapping"
+EXPORTED = "as exported"
+
+
+@dataclass(frozen=True)
+class PoseFigures:
+    """The quality of one pose in three figures (the CLI report's names in brackets).
+
+    Attributes
+    ----------
+    inverted : int
+        Elements with a non-positive corner Jacobian (``quality.<final>.inverted``).
+    worst_jacobian : float
+        Smallest corner Jacobian ratio (``quality.<final>.jacobian.worst``); NaN without
+        measured elements.
+    max_volume_change_pct : float
+        Signed volume change of the solid whose change is largest in magnitude, percent
+        (``volume_change.max_element_pct``); NaN without solids.
+    """
+
+    inverted: int
+    worst_jacobian: float
+    max_volume_change_pct: float
+
+    @classmethod
+    def from_report(cls, report: Mapping[str, Any]) -> PoseFigures:
+        """The figures of a :func:`~kneegui.reposition.pipeline.pose_model` report (the pose
+        it writes: smoothed when it was smoothed)."""
+        quality = report["quality"]
+        final = quality.get("smoothed", quality["posed"])
+        worst = final["jacobian"]["worst"]
+        change = report["volume_change"]["max_element_pct"]
+        return cls(
+            int(final["inverted"]),
+            float("nan") if worst is None else float(worst),
+            float("nan") if change is None else float(change),
+        )
+
+    def text(self) -> str:
+        """``inverted 3 · worst Jacobian 0.213 · largest volume change +12.1 %``."""
+        return (
+            f"inverted {self.inverted} · worst Jacobian {self.worst_jacobian:.3f} · "
+            f"largest volume change {self.max_volume_change_pct:+.1f} %"
+        )
+
+
+def pose_figures(model: Model, quality: QualityResult, initial: QualityResult) -> PoseFigures:
+    """The figures of a measured pose, by the rules of the export's report.
+
+    Parameters
+    ----------
+    model : Model
+        The model (its blocks order the results).
+    quality, initial : QualityResult
+        Every element measured now and in the initial pose.
+    """
+    largest = 0.0
+    found = False
+    for etype in SOLID_TYPES:
+        if etype not in quality or etype not in initial or not len(quality[etype]):
+            continue
+        pct = volume_change_pct(quality[etype].volume, initial[etype].volume)
+        k = int(np.argmax(np.abs(pct)))
+        if not found or abs(pct[k]) > abs(largest):
+            largest, found = float(pct[k]), True
+    return PoseFigures(
+        quality.n_inverted, quality.worst_jacobian(), largest if found else float("nan")
+    )
+
+
+@dataclass(frozen=True)
+class ExportedPose:
+    """The export path's result for one angle, tagged with the pose generation it answers."""
+
+    flexion: float
+    generation: int
+    posed: PosedModel
+    message: str
+    figures: PoseFigures
+
+    @property
+    def coords(self) -> NDArray[np.float64]:
+        """The exported node coordinates (N, 3)."""
+        return self.posed.model.coords
+
+
+@dataclass(frozen=True)
+class QualityCurve:
+    """Pose figures against flexion (one row per angle)."""
+
+    angles: NDArray[np.float64]
+    inverted: NDArray[np.int64]
+    worst_jacobian: NDArray[np.float64]
+    max_volume_change_pct: NDArray[np.float64]
+
+
+def live_quality_curve(
+    pose: Callable[[float], NDArray[np.float64]],
+    model: Model,
+    evaluator: QualityEvaluator,
+    initial: QualityResult,
+    angles: NDArray[np.float64],
+    progress: Callable[[float, str], None],
+    cancelled: Callable[[], bool],
+) -> QualityCurve:
+    """The live mapping's figures at each of ``angles`` (run in a worker thread)."""
+    rows = []
+    for i, angle in enumerate(angles):
+        if cancelled():
+            raise Cancelled("quality curve cancelled")
+        rows.append(pose_figures(model, evaluator.evaluate(pose(float(angle))), initial))
+        progress((i + 1) / len(angles), f"live mapping quality at {angle:g}°")
+    return QualityCurve(
+        np.asarray(angles, dtype=np.float64),
+        np.array([r.inverted for r in rows], dtype=np.int64),
+        np.array([r.worst_jacobian for r in rows]),
+        np.array([r.max_volume_change_pct for r in rows]),
+    )
+
+
+class ExportPreview(QObject):
+    """Runs the export path on the resting angle and the live quality curve, in one worker.
+
+    Signals
+    -------
+    changed : the state shown by the indicator changed (running, progress, failed, shown)
+    curve_changed : the live curve or the exported points changed
+    """
+
+    changed = Signal()
+    curve_changed = Signal()
+
+    def __init__(self, workspace: Workspace):
+        super().__init__(workspace)
+        self._ws = workspace
+        self.tasks = TaskRunner(self)
+        #: False: the view stays on the live mapping until Relax + smooth is pressed
+        self.enabled = True
+        self.live_curve: QualityCurve | None = None
+        #: exported angle -> its figures (every export shown since the poser was built)
+        self.exported_points: dict[float, PoseFigures] = {}
+        #: the angle the running export is for (None when none runs)
+        self.running_for: float | None = None
+        self.fraction = 0.0
+        self.message = ""
+        #: why the last export of the current pose failed ('' when it did not)
+        self.error = ""
+        self._pending = False
+        self._curve_pending = False
+        self._explicit = False
+        self._timer = QTimer(self)
+        self._timer.setSingleShot(True)
+        self._timer.setInterval(REST_DELAY_MS)
+        self._timer.timeout.connect(lambda: self.start())
+        self.tasks.progress.connect(self._on_progress)
+        self.tasks.finished.connect(self._on_finished)
+
+    @property
+    def busy(self) -> bool:
+        """Whether an export or the curve is running, waiting to start or waiting for rest."""
+        return self.tasks.busy or self._pending or self._curve_pending or self._timer.isActive()
+
+    # ------------------------------------------------------------------ scheduling
+    def pose_requested(self, schedule: bool) -> None:
+        """A new pose was asked for: a running export is now stale (its cancel check sees the
+        generation move); with ``schedule`` the export runs once the slider rests."""
+        self.error = ""
+        self._pending = False
+        if schedule and self.enabled:
+            self._timer.start()
+        else:
+            self._timer.stop()
+        self.changed.emit()
+
+    def settle(self) -> None:
+        """The slider was released: run the export now instead of after the rest delay."""
+        if self._timer.isActive():
+            self._timer.stop()
+            self.start()
+
+    def reset(self) -> None:
+        """A new model or poser: forget the curve and the exported points."""
+        self._timer.stop()
+        self._pending = self._curve_pending = False
+        self.tasks.cancel()
+        self.live_curve = None
+        self.exported_points.clear()
+        self.running_for = None
+        self.error = ""
+        self.curve_changed.emit()
+        self.changed.emit()
+
+    def start(self, explicit: bool = False) -> bool:
+        """Run the export path on the current angle unless its result is already shown.
+
+        Waits (returns False) while the worker is busy; it starts when the worker is free.
+        ``explicit``: asked for by the user (Relax + smooth): a failure is shown in a dialog.
+        """
+        ws = self._ws
+        self._timer.stop()
+        self._explicit = self._explicit or explicit
+        if ws.poser is None or ws.model is None:
+            return False
+        if ws.exported is not None and ws.exported.generation == ws.pose_generation:
+            return False
+        if self.tasks.busy:
+            self._pending = True
+            return False
+        self._pending = False
+        from app import smoothing
+
+        poser, degrees, generation = ws.poser, ws.target_flexion, ws.pose_generation
+        explicit_run, self._explicit = self._explicit, False
+
+        def work(progress, cancelled):
+            def stale() -> bool:
+                return cancelled() or ws.pose_generation != generation
+
+            return smoothing.smooth_current(poser, degrees, progress, stale)
+
+        def done(outcome: smoothing.SmoothingOutcome) -> None:
+            self.running_for = None
+            exported = ExportedPose(
+                degrees,
+                generation,
+                outcome.posed,
+                outcome.message,
+                PoseFigures.from_report(outcome.report),
+            )
+            if poser is ws.poser:
+                self.exported_points[degrees] = exported.figures
+                self.curve_changed.emit()
+            ws.show_exported(exported)  # dropped there when stale
+            self.changed.emit()
+
+        def failed(exc: BaseException) -> None:
+            self.running_for = None
+            if ws.pose_generation == generation:
+                self.error = f"{type(exc).__name__}: {exc}"
+                ws.status.emit(f"the export at {degrees:g}° failed: {exc}")
+                if explicit_run:
+                    ws.error.emit(exc)
+            self.changed.emit()
+
+        self.running_for = degrees
+        self.fraction, self.message = 0.0, "posing"
+        self.tasks.start(f"Export at {degrees:g}°", work, done, failed)
+        self.changed.emit()
+        return True
+
+    def start_curve(self) -> bool:
+        """Sample the live mapping's figures over the validated range (worker thread; after the
+        running task when one runs)."""
+        from app.workspace import FLEXION_RANGE
+
+        ws = self._ws
+        if ws.poser is None or ws.model is None or ws.evaluator is None:
+            return False
+        if self.tasks.busy:
+            self._curve_pending = True
+            return False
+        self._curve_pending = False
+        poser, model, evaluator = ws.poser, ws.model, ws.evaluator
+        initial = ws.initial_quality
+        lo, hi = FLEXION_RANGE
+        angles = np.arange(lo, hi + 1e-9, CURVE_STEP_DEG)
+
+        def work(progress, cancelled):
+            return live_quality_curve(
+                poser.pose, model, evaluator, initial, angles, progress, cancelled
+            )
+
+        def done(curve: QualityCurve) -> None:
+            if poser is ws.poser:
+                self.live_curve = curve
+                self.curve_changed.emit()
+
+        return self.tasks.start("Live quality curve", work, done, lambda exc: ws.error.emit(exc))
+
+    def _on_progress(self, fraction: float, message: str) -> None:
+        if self.running_for is not None:
+            self.fraction, self.message = fraction, message
+            self.changed.emit()
+
+    def _on_finished(self, _name: str) -> None:
+        if self.running_for is not None:  # cancelled: neither done nor failed ran
+            self.running_for = None
+            self.changed.emit()
+        QTimer.singleShot(0, self._after_task)
+
+    def _after_task(self) -> None:
+        if self._curve_pending and not self.tasks.busy:
+            self.start_curve()
+        elif self._pending and not self.tasks.busy:
+            self.start()

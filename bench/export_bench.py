@@ -1,0 +1,265 @@
+"""The export at scale: precompute and one export at 90 degrees per demo size, split by stage.
+
+``python -m bench.export_bench DECK_DIR [DECK_DIR ...]`` measures, for each folder holding a
+``demo_leg.k`` and ``demo_leg.setup.json`` (``kneegui demo OUT --elements N``), in a fresh
+process per size: the precompute (``Repositioner``) and one ``export_pose`` at 90 degrees (pose,
+relaxation, smoothing, quality, write), the export's time split into region finding,
+relaxation, smoothing, quality and write, the size of the relaxed region beside the model's,
+the final worst Jacobian and inverted count, and the process's peak resident memory. Wall and
+CPU seconds are both recorded: on a shared machine the CPU time of a single-threaded stage is
+the better estimate of its idle wall time. Results: bench/results/export_scaling.json, the
+table in docs/benchmarks.md (between its ``export-scaling`` markers, also rendered by
+:mod:`bench.report`) and docs/images/export-scaling.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "bench" / "results" / "export_scaling.json"
+ANGLE = 90.0
+BEGIN, END = "<!-- export-scaling:begin -->", "<!-- export-scaling:end -->"
+
+_CHILD = r"""
+import json, os, resource, sys, tempfile, time
+from kneegui.io.lsdyna import read_deck
+from kneegui.reposition import Repositioner
+from kneegui.reposition.pipeline import export_pose
+from kneegui.setup import load_setup
+from kneegui.topology import SOLID_TYPES
+
+folder, angle = sys.argv[1], float(sys.argv[2])
+deck = os.path.join(folder, "demo_leg.k")
+model = read_deck(deck)
+setup = load_setup(os.path.join(folder, "demo_leg.setup.json"), model)
+
+def clock():
+    return time.perf_counter(), time.process_time()
+
+w, c = clock()
+rep = Repositioner(model, setup)
+pre = {"wall_s": time.perf_counter() - w, "cpu_s": time.process_time() - c,
+       "breakdown_s": dict(rep.timings_s)}
+with tempfile.TemporaryDirectory() as tmp:
+    w, c = clock()
+    posed = export_pose(rep, angle, os.path.join(tmp, "posed.k"), model_path=deck, force=True)
+    wall, cpu = time.perf_counter() - w, time.process_time() - c
+r = posed.report
+t = r["timings_s"]
+relax = r["relaxation"] or {}
+quality_opt = relax.get("quality") or {}
+smooth = r["smoothing"] or {}
+region = t.get("relax_region", 0.0)
+split = {
+    "relaxation setup (first export)": rep.timings_s.get("relaxation", 0.0)
+    + rep.timings_s.get("relaxation contact", 0.0),
+    "region finding": region,
+    "relaxation": t.get("pose_relax", 0.0) - region,
+    "smoothing": t.get("smoothing", 0.0),
+    "quality": t.get("quality_initial", 0.0) + t.get("quality_posed", 0.0)
+    + t.get("quality_smoothed", 0.0),
+    "write": t.get("write", 0.0),
+}
+split["relaxation"] -= split["relaxation setup (first export)"]
+final = r["quality"].get("smoothed", r["quality"]["posed"])
+print(json.dumps({
+    "nodes": model.n_nodes, "elements": model.n_elements,
+    "solids": int(sum(len(b) for k, b in model.blocks.items() if k in SOLID_TYPES)),
+    "precompute": pre,
+    "export": {"wall_s": wall, "cpu_s": cpu, "split_s": split},
+    "region": {"relaxed_nodes": relax.get("free_nodes", 0),
+               "relaxed_corners": relax.get("corners", 0),
+               "optimised_nodes": quality_opt.get("free_nodes", 0),
+               "optimised_elements": quality_opt.get("elements", 0),
+               "smoothed_nodes": smooth.get("free_nodes", 0)},
+    "worst_jacobian": final["jacobian"]["worst"], "inverted": final["inverted"],
+    "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+}))
+"""
+
+
+def measure(folder: Path, angle: float = ANGLE, timeout_s: float | None = None) -> dict[str, Any]:
+    """One size in a fresh process (see the module docstring)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(folder), str(angle)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=timeout_s,
+    )
+    if proc.returncode:
+        return {"folder": str(folder), "error": proc.stderr.strip().splitlines()[-1:]}
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["folder"] = str(folder)
+    return out
+
+
+def _s(value: float) -> str:
+    return f"{value:.2f} s" if value >= 1 else f"{1000 * value:.0f} ms"
+
+
+def markdown(results: dict[str, Any]) -> list[str]:
+    """The section of docs/benchmarks.md (between the markers)."""
+    runs = sorted(
+        (r for r in results.get("runs", []) if "error" not in r), key=lambda r: r["elements"]
+    )
+    lines = [
+        BEGIN,
+        "## The export at scale (`python -m bench.export_bench`)",
+        "",
+        f"One export at {results.get('angle', ANGLE):g}° (`export_pose`: pose, relaxation, "
+        "smoothing, quality, write) per demo size, each in a fresh process, one run each; "
+        "wall time with the CPU time in brackets (on a shared machine the CPU time of these "
+        "single-threaded stages is the better estimate of an idle run). "
+        "![export time against model size](images/export-scaling.png)",
+        "",
+    ]
+    if not runs:
+        return [*lines, "Not measured.", END]
+    head = "| | " + " | ".join(f"{r['solids']:,} solids" for r in runs) + " |"
+    lines += [head, "|---" * (len(runs) + 1) + "|"]
+
+    def row(label: str, cells: list[str]) -> None:
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+
+    row("nodes / elements", [f"{r['nodes']:,} / {r['elements']:,}" for r in runs])
+    row(
+        "precompute (`Repositioner`)",
+        [f"{_s(r['precompute']['wall_s'])} ({_s(r['precompute']['cpu_s'])})" for r in runs],
+    )
+    row(
+        "**export at 90°**",
+        [f"**{_s(r['export']['wall_s'])}** ({_s(r['export']['cpu_s'])})" for r in runs],
+    )
+    for stage in runs[0]["export"]["split_s"]:
+        row(f"— {stage}", [_s(r["export"]["split_s"][stage]) for r in runs])
+    row(
+        "relaxed region: nodes / corner tets",
+        [f"{r['region']['relaxed_nodes']:,} / {r['region']['relaxed_corners']:,}" for r in runs],
+    )
+    row(
+        "quality-optimised: nodes / elements",
+        [
+            f"{r['region']['optimised_nodes']:,} / {r['region']['optimised_elements']:,}"
+            for r in runs
+        ],
+    )
+    row("smoothed nodes", [f"{r['region']['smoothed_nodes']:,}" for r in runs])
+    row(
+        "after export: worst J / inverted",
+        [f"{r['worst_jacobian']:.3f} / {r['inverted']}" for r in runs],
+    )
+    row("peak memory (process)", [f"{r['peak_rss_mb']:,.0f} MB" for r in runs])
+    lines += [
+        "",
+        "Where the export's time goes (the stage taking most of it, and the share of the "
+        "model's nodes the relaxation moved):",
+        "",
+    ]
+    for r in runs:
+        split = r["export"]["split_s"]
+        stage = max(split, key=split.get)
+        total = sum(split.values())
+        lines.append(
+            f"- {r['solids']:,} solids: {stage} {100 * split[stage] / max(total, 1e-12):.0f} % "
+            f"of the staged time; relaxed region {r['region']['relaxed_nodes']:,} of "
+            f"{r['nodes']:,} nodes ({100 * r['region']['relaxed_nodes'] / r['nodes']:.1f} %)."
+        )
+    failed = [r for r in results.get("runs", []) if "error" in r]
+    for r in failed:
+        lines += ["", f"{r['folder']}: failed ({' '.join(r['error'])})."]
+    machine = results.get("machine")
+    if machine:
+        lines += [
+            "",
+            f"Machine: {machine.get('cpu')}, {machine.get('cores')} cores, "
+            f"{machine.get('memory_gb')} GB; load average at start {results.get('load', '?')} "
+            "(other processes shared the CPU).",
+        ]
+    return [*lines, END]
+
+
+def plot(results: dict[str, Any], path: Path) -> Path | None:
+    """Export time (and its stages) against model size, log-log."""
+    runs = sorted(
+        (r for r in results.get("runs", []) if "error" not in r), key=lambda r: r["elements"]
+    )
+    if not runs:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [r["elements"] for r in runs]
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    ax.loglog(x, [r["export"]["wall_s"] for r in runs], "o-", label="export, wall")
+    ax.loglog(x, [r["export"]["cpu_s"] for r in runs], "o--", label="export, CPU")
+    for stage in ("relaxation", "smoothing", "quality", "write"):
+        values = [max(r["export"]["split_s"][stage], 1e-3) for r in runs]
+        ax.loglog(x, values, ".:", label=stage)
+    ax.loglog(x, [r["precompute"]["wall_s"] for r in runs], "s-", label="precompute, wall")
+    ax.set_xlabel("model elements")
+    ax.set_ylabel("seconds")
+    ax.set_title("kneegui export at 90° against model size (demo leg)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_docs(results: dict[str, Any], root: Path = ROOT) -> None:
+    """Put the section into docs/benchmarks.md (replacing the previous one) and draw the plot."""
+    doc = root / "docs" / "benchmarks.md"
+    text = doc.read_text() if doc.exists() else ""
+    section = "\n".join(markdown(results))
+    if BEGIN in text and END in text:
+        before, rest = text.split(BEGIN, 1)
+        text = before + section + rest.split(END, 1)[1]
+    else:
+        marker = "## How it is measured"
+        text = (
+            text.replace(marker, section + "\n\n" + marker, 1)
+            if marker in text
+            else text + "\n" + section + "\n"
+        )
+    doc.write_text(text)
+    plot(results, root / "docs" / "images" / "export-scaling.png")
+
+
+def main(argv: list[str] | None = None) -> int:
+    import os
+
+    from bench.machine import machine_description
+
+    parser = argparse.ArgumentParser(prog="python -m bench.export_bench", description=__doc__)
+    parser.add_argument("folders", nargs="+", type=Path, help="folders from `kneegui demo`")
+    parser.add_argument("--angle", type=float, default=ANGLE)
+    parser.add_argument("--merge", action="store_true", help="add to the saved results")
+    args = parser.parse_args(argv)
+    results: dict[str, Any] = {"angle": args.angle, "runs": []}
+    if args.merge and RESULTS.exists():
+        results = json.loads(RESULTS.read_text())
+    results["machine"] = machine_description()
+    results["load"] = " / ".join(f"{v:.1f}" for v in os.getloadavg())
+    for folder in args.folders:
+        run = measure(folder, args.angle)
+        results["runs"] = [r for r in results["runs"] if r.get("folder") != str(folder)] + [run]
+        print(json.dumps(run), flush=True)
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        RESULTS.write_text(json.dumps(results, indent=2) + "\n")
+    write_docs(results)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

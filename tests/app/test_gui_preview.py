@@ -1,0 +1,226 @@
+"""What the window shows is what it exports: the export at rest, its indicator, cancelling by
+dragging, Export without a second solve, quality against flexion, panels equal to the CLI."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+
+import app.smoothing
+from kneegui.errors import Cancelled
+from kneegui.io.lsdyna import read_deck
+from kneegui.quality import compute_quality, summarize_quality
+
+from .conftest import wait_idle
+
+pytestmark = pytest.mark.gui
+
+
+@pytest.fixture
+def counted_exports(monkeypatch):
+    """Every run of the export path from the window: (angle, 'done' | 'cancelled')."""
+    runs: list[tuple[float, str]] = []
+    real = app.smoothing.pose_model
+
+    def counting(repositioner, flexion_deg, **kwargs):
+        try:
+            posed = real(repositioner, flexion_deg, **kwargs)
+        except Cancelled:
+            runs.append((flexion_deg, "cancelled"))
+            raise
+        runs.append((flexion_deg, "done"))
+        return posed
+
+    monkeypatch.setattr(app.smoothing, "pose_model", counting)
+    return runs
+
+
+@pytest.fixture(scope="module")
+def cli_pose_90(leg_files, tmp_path_factory):
+    """``kneegui pose DECK --setup S --flexion 90 --report R --force``: (coords, report)."""
+    from kneegui.cli import main as cli
+
+    deck, setup = leg_files
+    folder = tmp_path_factory.mktemp("cli90")
+    code = cli(
+        [
+            "pose",
+            str(deck),
+            "--setup",
+            str(setup),
+            "--flexion",
+            "90",
+            "--out",
+            str(folder / "cli.k"),
+            "--report",
+            str(folder / "report.json"),
+            "--force",
+        ]
+    )
+    assert code in (0, 3)
+    report = json.loads((folder / "report.json").read_text())
+    return read_deck(folder / "cli.k").coords, report
+
+
+def test_rest_shows_the_export_as_the_cli_writes_it_and_export_does_not_solve_again(
+    demo_window, qtbot, tmp_path, counted_exports, cli_pose_90
+):
+    cli_coords, report = cli_pose_90
+    ws, indicator = demo_window.ws, demo_window.indicator
+    # the live mapping at 90 deg (export at rest off): its figures are the engine's summary
+    demo_window.flexion_panel.slider.setValue(900)
+    wait_idle(qtbot, ws)
+    assert ws.view_kind == "live mapping" and counted_exports == []
+    live = ws.view_figures()
+    summary = summarize_quality(
+        ws.model,
+        compute_quality(ws.coords, ws.model.blocks),
+        initial=compute_quality(ws.model.coords, ws.model.blocks),
+    )["model"]
+    assert live.inverted == summary["inverted"] > 0
+    assert live.worst_jacobian == summary["jacobian"]["worst"]
+    assert live.max_volume_change_pct == summary["volume_change"]["max_element_pct"]
+    expected = f"LIVE MAPPING · 90.0° · inverted {live.inverted} ·"
+    qtbot.waitUntil(lambda: indicator.text().startswith(expected), timeout=5000)
+    # back to the initial angle, then the export at rest on, and a move to 90 deg
+    demo_window.flexion_panel.spin.setValue(ws.poser.initial_flexion)
+    demo_window.set_rest_export(True)
+    wait_idle(qtbot, ws)
+    counted_exports.clear()
+    shown = []
+    ws.coords_changed.connect(lambda: shown.append((ws.flexion, ws.view_kind)))
+    demo_window.flexion_panel.slider.setValue(900)
+    # the banner changes with the view: to the live mapping when its first pose is drawn
+    qtbot.waitUntil(lambda: indicator.text().startswith("LIVE MAPPING"), timeout=10000)
+    wait_idle(qtbot, ws, timeout=300)
+    assert demo_window.last_error is None, demo_window.last_error
+    # the live pose first, then the export of the resting angle
+    assert shown[0] == (90.0, "live mapping") and shown[-1] == (90.0, "as exported")
+    assert counted_exports == [(90.0, "done")]
+    np.testing.assert_allclose(ws.coords, cli_coords, rtol=0, atol=1e-6)
+    mine = ws.exported.posed.report
+    for key in ("quality", "volume_change", "achieved_flexion", "initial_flexion", "gate"):
+        assert mine[key] == report[key], key
+    # every figure shown is the CLI report's
+    final = report["quality"]["smoothed"]
+    text = indicator.text()
+    assert text.startswith("AS EXPORTED · 90.0°"), text
+    assert f"inverted {final['inverted']} · worst Jacobian {final['jacobian']['worst']:.3f}" in text
+    vc = report["volume_change"]["max_element_pct"]
+    assert f"largest volume change {vc:+.1f} %" in text
+    panel = demo_window.quality_panel
+    panel.refresh()
+    stats = panel.stats.text()
+    assert f"inverted {final['inverted']}" in stats
+    assert f"worst Jacobian {final['jacobian']['worst']:.3f}" in stats
+    initial = f"{report['initial_flexion']:.1f}°"
+    assert demo_window.flexion_panel.info.text() == f"initial {initial}"
+    assert demo_window.landmark_panel.labels["flexion"].text() == initial
+    for label in demo_window.landmark_panel.labels.values():
+        assert "xyz" not in label.text()
+    # Export writes what is shown, without solving again
+    out = tmp_path / "shown.k"
+    assert ws.export(out)
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert counted_exports == [(90.0, "done")]
+    np.testing.assert_allclose(read_deck(out).coords, cli_coords, rtol=0, atol=1e-6)
+    # quality against flexion: the live mapping over the validated range, the exported angle
+    curve_panel = demo_window.quality_curve_panel
+    data = curve_panel.series()
+    live_x, live_y, exp_x, exp_y = data["worst_jacobian"]
+    assert live_x[0] == -5.0 and live_x[-1] == 140.0 and len(live_y) == len(live_x) == 30
+    assert 90.0 in exp_x
+    assert exp_y[exp_x.index(90.0)] == final["jacobian"]["worst"]
+    j = int(np.flatnonzero(live_x == 90.0)[0])
+    assert data["inverted"][1][j] == live.inverted
+    assert live_y[j] == live.worst_jacobian
+    assert data["max_volume_change_pct"][1][j] == live.max_volume_change_pct
+    demo_window.docks["Quality vs flexion"].raise_()
+    qtbot.waitUntil(lambda: curve_panel.isVisible(), timeout=5000)
+    assert all(len(ax.lines) >= 2 for ax in curve_panel.axes)  # the curve and the angle
+    assert curve_panel._markers[0].get_xdata()[0] == pytest.approx(90.0)
+
+
+def test_dragging_again_cancels_the_export_and_a_stale_result_is_never_shown(
+    demo_window, qtbot, monkeypatch, counted_exports
+):
+    ws = demo_window.ws
+    demo_window.set_rest_export(True)
+    wait_idle(qtbot, ws)
+    counted_exports.clear()
+    gate = threading.Event()
+    counting = app.smoothing.pose_model
+
+    def held(repositioner, flexion_deg, **kwargs):
+        gate.wait(60)  # the test moves the slider while this export is under way
+        return counting(repositioner, flexion_deg, **kwargs)
+
+    monkeypatch.setattr(app.smoothing, "pose_model", held)
+    shown = []
+    ws.coords_changed.connect(lambda: shown.append((ws.flexion, ws.view_kind)))
+    slider = demo_window.flexion_panel.slider
+    slider.setValue(900)
+    qtbot.waitUntil(lambda: ws.preview.running_for == 90.0, timeout=10000)
+    assert "exporting" in demo_window.indicator.text()
+    slider.setValue(200)  # dragging again (to an angle the export poses quickly)
+    gate.set()
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert counted_exports == [(90.0, "cancelled"), (20.0, "done")]
+    assert (90.0, "as exported") not in shown
+    assert ws.view_kind == "as exported" and ws.flexion == 20.0
+    np.testing.assert_array_equal(ws.coords, ws.exported.coords)
+    assert 20.0 in ws.preview.exported_points and 90.0 not in ws.preview.exported_points
+
+
+def test_file_open_with_progress_recent_decks_and_title(window, qtbot, leg_files, tmp_path):
+    deck, setup = leg_files
+    ws = window.ws
+    window.open_deck(deck, setup)
+    dialog = window.open_progress
+    assert dialog is not None and dialog.isVisible()
+    assert deck.name in dialog.labelText()
+    wait_idle(qtbot, ws)
+    qtbot.waitUntil(lambda: ws.poser is not None, timeout=60000)
+    assert not dialog.isVisible()
+    assert window.recent_files()[0] == str(deck)
+    assert next(a.text() for a in window.recent_menu.actions()) == str(deck)
+    assert window.windowTitle().startswith(deck.name)
+    assert not window.isWindowModified()
+    lateral = ws.condyle_ids("lateral_condyle")
+    ws.remove_condyle_ids("lateral_condyle", lateral[:1])
+    assert window.isWindowModified()  # the title shows '*'
+    assert ws.tasks.busy  # the repositioner is rebuilt for the edit, without the dialog
+    assert not window.open_progress.isVisible()
+    ws.save_setup(tmp_path / "saved.setup.json")
+    assert not window.isWindowModified()
+    wait_idle(qtbot, ws)
+    # a deck that fails to read joins no list and keeps the title
+    bad = tmp_path / "bad.k"
+    bad.write_text("*KEYWORD\n*NODE\n       1     abc     0.0     0.0\n*END\n")
+    window.open_deck(bad)
+    wait_idle(qtbot, ws)
+    assert window.last_error is not None and "line 3" in window.last_error
+    assert str(bad) not in window.recent_files()
+    assert window.windowTitle().startswith(deck.name)
+    assert not window.open_progress.isVisible()
+
+
+def test_status_line_of_an_export_whose_smoother_had_nothing_to_move():
+    report = {
+        "relaxation": None,
+        "smoothing": {
+            "moved_nodes": 0,
+            "worst_jacobian_before": None,
+            "worst_jacobian_after": None,
+            "inverted_before": 0,
+            "inverted_after": 0,
+            "seconds": 0.001,
+        },
+        "warnings": [],
+    }
+    assert app.smoothing.status_line(report) == "smoothed: nothing to move"
