@@ -184,9 +184,10 @@ def locked_inverted_warning(inverted: dict[str, Any], preflight: Preflight) -> l
         return []
     lo, hi = preflight.valid_range_deg()
     return [
-        f"{inverted['locked']} locked element(s) inverted (every node tied to bones the "
-        f"kinematics move apart; ids {_id_list(inverted['locked_ids'])}); the pre-flight check "
-        f"finds every locked element valid only from {lo:.1f} to {hi:.1f} deg"
+        f"{inverted['locked']} locked element(s) inverted (nodes tied to bones the kinematics "
+        f"move apart, and no free node that could save them; ids "
+        f"{_id_list(inverted['locked_ids'])}); the pre-flight check finds every locked "
+        f"element valid only from {lo:.1f} to {hi:.1f} deg"
     ]
 
 

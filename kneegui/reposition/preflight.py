@@ -15,7 +15,9 @@ mapping is run):
     :func:`kneegui.quality.kernels.corner_jacobian`) is evaluated under the bones' rigid motions
     of :meth:`Repositioner.bone_pose` at every ``step_deg`` over the supported range, from the
     initial flexion outwards; the first sampled angle on each side where it is not positive is
-    refined by bisection to :data:`REFINE_STEPS` halvings of the step.
+    refined by bisection to :data:`REFINE_STEPS` halvings of the step. Elements with free nodes
+    whose bone nodes span two such segments are locked beyond the first flexion at which those
+    bone nodes alone are proven to leave the free nodes no valid position (:func:`_feasible`).
 *Coincident node pairs*
     Distinct nodes of elements at the same place (a sliding interface made of contact
     definitions, as at the demo's joint): count, and the parts on either side.
@@ -89,6 +91,9 @@ class LockedElements:
         the resolution), NaN when it stays valid to the end of the checked range.
     inverted_at_rest : (L,) ndarray of bool
         Already inverted in the initial model (its limits are then NaN).
+    free_nodes : (L,) ndarray of int
+        Nodes the repositioner may move: 0 for an element tied wholly to bones; more for one
+        whose tied nodes alone leave it no valid shape beyond its limits (:func:`_feasible`).
     """
 
     etype: NDArray[np.str_]
@@ -99,6 +104,7 @@ class LockedElements:
     inverts_below_deg: NDArray[np.float64]
     inverts_above_deg: NDArray[np.float64]
     inverted_at_rest: NDArray[np.bool_]
+    free_nodes: NDArray[np.int64]
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -266,6 +272,7 @@ class Preflight:
                         "inverts_below_deg": limit(locked.inverts_below_deg[k]),
                         "inverts_above_deg": limit(locked.inverts_above_deg[k]),
                         "inverted_at_rest": bool(locked.inverted_at_rest[k]),
+                        "free_nodes": int(locked.free_nodes[k]),
                     }
                     for k in range(len(locked))
                 ],
@@ -329,7 +336,9 @@ class Preflight:
         vlo, vhi = self.valid_range_deg()
         lines.append(
             f"locked elements: {len(locked)} (every node tied to bones that move relative to "
-            f"each other); all valid from {vlo:.1f} to {vhi:.1f} deg"
+            f"each other, or too few free nodes to save it beyond its limit: "
+            f"{int(np.count_nonzero(locked.free_nodes))}); all valid from {vlo:.1f} to "
+            f"{vhi:.1f} deg"
         )
         order = np.lexsort((locked.ids, -_narrowness(self)))
         lines.append(f"  {'id':>10}  {'type':<8} {'segments':<16} {'flexion limit':<30} part")
@@ -423,21 +432,76 @@ def _moving_pair_table(
     return table
 
 
-def _jacobians(
+def _valid(
     points: NDArray[np.float64],
     labels: NDArray[np.int8],
     rot: NDArray[np.float64],
     trans: NDArray[np.float64],
     etype: str,
-) -> NDArray[np.float64]:
-    """Corner Jacobians of elements whose nodes move rigidly: ``points`` (L, k, 3) at rest,
-    ``labels`` (L, k) their segments, ``rot`` (L, 4, 3, 3) and ``trans`` (L, 4, 3) one pose
-    per element. Returns (L,)."""
+) -> NDArray[np.bool_]:
+    """Whether elements whose tied nodes move rigidly can be valid: ``points`` (L, k, 3) at
+    rest, ``labels`` (L, k) their segments (:data:`MOVABLE`: a free node, left where it is),
+    ``rot`` (L, 4, 3, 3) and ``trans`` (L, 4, 3) one pose per element. Fully tied elements:
+    a positive corner Jacobian; others: no proof that their free nodes cannot restore it
+    (:func:`_feasible`). Returns (L,)."""
     idx = np.arange(len(points))[:, None]
+    rot = np.concatenate([rot, np.broadcast_to(np.eye(3), (len(rot), 1, 3, 3))], axis=1)
+    trans = np.concatenate([trans, np.zeros((len(trans), 1, 3))], axis=1)
     r = rot[idx, labels]  # (L, k, 3, 3)
     t = trans[idx, labels]
     posed = np.einsum("lkij,lkj->lki", r, points) + t
-    return corner_jacobian(posed, etype)
+    free = labels == MOVABLE
+    out = np.empty(len(points), dtype=bool)
+    tied = ~free.any(axis=1)
+    out[tied] = corner_jacobian(posed[tied], etype) > 0.0
+    out[~tied] = _feasible(posed[~tied], free[~tied], etype)
+    return out
+
+
+def _feasible(posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str) -> NDArray[np.bool_]:
+    """Whether elements with some nodes fixed at ``posed`` (L, k, 3) could still be valid
+    wherever their ``free`` (L, k) nodes go: False only with a proof that they cannot.
+
+    A corner's determinant is the signed volume of the tetrahedron of the corner and its three
+    neighbours, affine in each of its nodes. Proofs: (a) a corner with no free node whose
+    determinant is not positive; (b) for one free node, the corners in which it is the only
+    free node ask it to lie strictly on the positive side of the planes through their other
+    (fixed) nodes; when there are four such corners with independent normals ``g_c``
+    (determinant ``d_c + g_c . (x - x_0)``), they admit no position exactly when the one
+    combination ``sum l_c g_c = 0`` has every ``l_c >= 0`` and ``sum l_c d_c <= 0`` (Farkas'
+    lemma; the sum is the same for every ``x_0``). Corners with two free nodes are left out,
+    so a False is a proof and a True only means no proof was found. Fully fixed elements get
+    the plain corner test.
+    """
+    table = np.array(CORNER_TRIPLES[etype])
+    if (table < 0).any():  # a shell's corners are not volumes: no proof
+        return np.ones(len(posed), dtype=bool)
+    corners = posed[:, table]  # (L, C, 4, 3)
+    e1, e2, e3 = (corners[:, :, s] - corners[:, :, 0] for s in (1, 2, 3))
+    grads = np.stack(
+        [np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=2
+    )  # d det / d (node 1, 2, 3), (L, C, 3, 3)
+    det = np.einsum("lci,lci->lc", e1, grads[:, :, 0])
+    grads = np.concatenate([-grads.sum(axis=2, keepdims=True), grads], axis=2)
+    n_free = free[:, table].sum(axis=-1)  # (L, C)
+    ok = ~((n_free == 0) & (det <= 0.0)).any(axis=1)
+    for node in range(posed.shape[1]):
+        where = np.argwhere(table == node)  # (corner, slot) pairs holding the node
+        if len(where) != 4:
+            continue  # fewer than four half-spaces in 3-D always meet; more: not proven here
+        cs, slots = where[:, 0], where[:, 1]
+        use = free[:, node] & (n_free[:, cs] == 1).all(axis=1) & ok
+        if not use.any():
+            continue
+        g = grads[use][:, cs, slots]  # (u, 4, 3): one normal per corner
+        u, sv, _ = np.linalg.svd(g, full_matrices=True)
+        independent = sv[:, 2] > 1e-9 * sv[:, 0]
+        lam = u[:, :, 3]  # spans the null space of g^T when the normals are independent
+        lam = lam * np.where(lam.sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
+        proof = independent & (lam >= 0.0).all(axis=1)
+        proof &= np.einsum("uc,uc->u", lam, det[use][:, cs]) <= 0.0
+        ok[np.flatnonzero(use)[proof]] = False
+    return ok
 
 
 def _limits(
@@ -451,7 +515,13 @@ def _limits(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """First inverting flexion below and above ``angles[i0]`` of each element (NaN: none)."""
     n = len(points)
-    at_rest = corner_jacobian(points, etype) <= 0.0
+    at_rest = ~_valid(
+        points,
+        labels,
+        np.broadcast_to(np.eye(3), (n, len(RIGID_SEGMENTS), 3, 3)),
+        np.zeros((n, len(RIGID_SEGMENTS), 3)),
+        etype,
+    )
     valid = np.empty((len(angles), n), dtype=bool)
     transforms = [poses(float(a)) for a in angles]
     for s, (rot, trans) in enumerate(transforms):
@@ -461,15 +531,12 @@ def _limits(
         for start in range(0, n, _CHUNK):
             sl = slice(start, start + _CHUNK)
             m = len(points[sl])
-            valid[s, sl] = (
-                _jacobians(
-                    points[sl],
-                    labels[sl],
-                    np.broadcast_to(rot, (m, *rot.shape)),
-                    np.broadcast_to(trans, (m, *trans.shape)),
-                    etype,
-                )
-                > 0.0
+            valid[s, sl] = _valid(
+                points[sl],
+                labels[sl],
+                np.broadcast_to(rot, (m, *rot.shape)),
+                np.broadcast_to(trans, (m, *trans.shape)),
+                etype,
             )
     below = np.full(n, np.nan)
     above = np.full(n, np.nan)
@@ -510,7 +577,7 @@ def _bisect(
         solved = [poses(float(a)) for a in unique]
         rot = np.stack([s[0] for s in solved])[inverse]
         trans = np.stack([s[1] for s in solved])[inverse]
-        ok = _jacobians(points, labels, rot, trans, etype) > 0.0
+        ok = _valid(points, labels, rot, trans, etype)
         good = np.where(ok, mid, good)
         bad = np.where(ok, bad, mid)
     return good, bad
@@ -643,26 +710,34 @@ def run_preflight(
         block = model.blocks.get(etype)
         if block is None or not len(block):
             continue
-        mask = np.bitwise_or.reduce(bits[labels[block.conn]], axis=1)
-        rigid_rows = np.flatnonzero((mask & bits[MOVABLE]) == 0)
-        rigid_rows = rigid_rows[several[mask[rigid_rows]]]
-        if len(rigid_rows):
-            candidates[etype] = (rigid_rows, mask[rigid_rows])
+        # the segments of each element's tied nodes; its free nodes, if any, may still be
+        # unable to save it (:func:`_feasible`)
+        mask = np.bitwise_or.reduce(bits[labels[block.conn]], axis=1) & ~bits[MOVABLE]
+        tied_rows = np.flatnonzero(several[mask])
+        if len(tied_rows):
+            candidates[etype] = (tied_rows, mask[tied_rows])
     if candidates:  # the bones' motions are sampled only when some element spans two segments
         sampled = [poses(float(a)) for a in angles]
         rot = np.stack([s[0] for s in sampled])
         trans = np.stack([s[1] for s in sampled])
         moving_table = _moving_pair_table(rot, trans, box, RELATIVE_MOTION_TOLERANCE * diagonal)
 
-    chunks: dict[str, list] = {k: [] for k in ("etype", "rows", "below", "above", "rest", "mask")}
-    for etype, (rigid_rows, rigid_mask) in candidates.items():
-        keep = moving_table[rigid_mask]
-        locked_rows, mask = rigid_rows[keep], rigid_mask[keep]
+    keys = ("etype", "rows", "below", "above", "rest", "mask", "free")
+    chunks: dict[str, list] = {k: [] for k in keys}
+    for etype, (tied_rows, tied_mask) in candidates.items():
+        keep = moving_table[tied_mask]
+        locked_rows, mask = tied_rows[keep], tied_mask[keep]
         if not len(locked_rows):
             continue
         conn = model.blocks[etype].conn[locked_rows]
         below, above, rest = _limits(
             model.coords[conn], labels[conn], etype, angles, i0, poses, refine_steps
+        )
+        free = (labels[conn] == MOVABLE).sum(axis=1)
+        # an element with a free node is locked only where it is proven unable to stay valid
+        keep = (free == 0) | rest | np.isfinite(below) | np.isfinite(above)
+        locked_rows, mask, below, above, rest, free = (
+            a[keep] for a in (locked_rows, mask, below, above, rest, free)
         )
         chunks["etype"].append(np.full(len(locked_rows), etype))
         chunks["rows"].append(locked_rows)
@@ -670,6 +745,7 @@ def run_preflight(
         chunks["above"].append(above)
         chunks["rest"].append(rest)
         chunks["mask"].append(mask)
+        chunks["free"].append(free)
 
     def cat(key: str, dtype) -> NDArray:
         return np.concatenate(chunks[key]) if chunks[key] else np.zeros(0, dtype=dtype)
@@ -698,6 +774,7 @@ def run_preflight(
         inverts_below_deg=cat("below", np.float64),
         inverts_above_deg=cat("above", np.float64),
         inverted_at_rest=cat("rest", bool),
+        free_nodes=cat("free", np.int64),
     )
 
     tolerance = COINCIDENT_TOLERANCE * diagonal

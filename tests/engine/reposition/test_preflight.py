@@ -150,6 +150,82 @@ def test_coincident_pairs_are_found_and_joined_by_part(two_bones):
 
 
 # ------------------------------------------------------------------ the demo leg
+def _best_corner_volume(fixed: np.ndarray, free_slot: int) -> float:
+    """Independently of the pre-flight's proof: the largest achievable smallest corner
+    determinant (scaled) of a hex whose nodes other than ``free_slot`` are fixed, over the
+    free node's position, counting only the corners in which it is the only free node (an LP:
+    maximise t with every such corner's determinant >= t, t <= 1)."""
+    from scipy.optimize import linprog
+
+    from kneegui.topology import CORNER_TRIPLES
+
+    a_rows, b_rows = [], []
+    for corner in CORNER_TRIPLES["hex8"]:
+        if free_slot not in corner:
+            continue
+
+        def det(x, corner=corner):
+            p = fixed.copy()
+            p[free_slot] = x
+            i, a, b, c = corner
+            return np.linalg.det(np.array([p[a] - p[i], p[b] - p[i], p[c] - p[i]]))
+
+        d0 = det(np.zeros(3))
+        a_rows.append([det(e) - d0 for e in np.eye(3)])
+        b_rows.append(d0)
+    a_ub = np.c_[-np.array(a_rows), np.ones(len(a_rows))]
+    res = linprog([0, 0, 0, -1], A_ub=a_ub, b_ub=b_rows, bounds=[(None, None)] * 3 + [(None, 1)])
+    return -res.fun if res.status == 0 else float("-inf")
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_proof_that_a_free_node_cannot_save_an_element_is_exact(seed):
+    """One free node of a hex whose other nodes are placed at random: where the corners
+    without it are valid, the pre-flight proves the element cannot be valid exactly when no
+    position of the free node gives its own four corners positive determinants (an
+    independent LP); and it never proves a valid element invalid."""
+    from kneegui.reposition.preflight import _feasible
+    from kneegui.topology import CORNER_TRIPLES
+
+    rng = np.random.default_rng(seed)
+    n = 20000
+    hexes = CUBE[None] + rng.normal(scale=0.7, size=(n, 8, 3))
+    slot = int(rng.integers(8))
+    free = np.zeros((n, 8), dtype=bool)
+    free[:, slot] = True
+    fixed_ok = np.ones(n, dtype=bool)
+    for i, a, b, c in CORNER_TRIPLES["hex8"]:
+        if slot not in (i, a, b, c):
+            edges = np.stack([hexes[:, k] - hexes[:, i] for k in (a, b, c)], axis=1)
+            fixed_ok &= np.linalg.det(edges) > 0
+    proved = ~_feasible(hexes, free, "hex8")
+    assert np.all(proved[~fixed_ok])  # a corner of fixed nodes inverted is proof enough
+    by_planes = np.flatnonzero(proved & fixed_ok)
+    unproved = rng.choice(np.flatnonzero(~proved), 150, replace=False)
+    best_proved = np.array([_best_corner_volume(hexes[k], slot) for k in by_planes])
+    best_unproved = np.array([_best_corner_volume(hexes[k], slot) for k in unproved])
+    assert len(by_planes) >= 10
+    assert np.all(best_proved < -1e-6) and np.all(best_unproved > 1e-6)
+    block = ElementBlock(
+        "hex8", np.arange(n), np.ones(n, dtype=int), np.arange(8 * n).reshape(n, 8)
+    )
+    valid_now = ~compute_quality(hexes.reshape(-1, 3), {"hex8": block})["hex8"].inverted
+    assert valid_now.sum() > 100 and not proved[valid_now].any()
+
+
+def test_a_fixed_corner_inverted_by_the_bones_is_proof_enough():
+    """A hex with its bottom face on the tibia and three top nodes on the femur: turned far
+    enough, a corner of four bone nodes inverts and the one free node cannot help."""
+    from kneegui.reposition.preflight import _feasible
+
+    free = np.zeros((1, 8), dtype=bool)
+    free[0, 6] = True
+    flat = CUBE.copy()
+    flat[4:, 2] = -0.2  # the top face pushed below the bottom one
+    assert not _feasible(flat[None], free, "hex8")[0]
+    assert _feasible(CUBE[None], free, "hex8")[0]
+
+
 def test_sliding_demo_has_no_locked_elements(small_leg, small_repositioner):
     pre = preflight_of(small_repositioner)
     assert len(pre.locked) == 0
@@ -174,16 +250,26 @@ def test_welded_demo_lists_elements_tied_to_two_bones(welded):
     assert len(pre.locked) >= 5
     assert len(pre.coincident_pairs) == 0
     setup, model = repositioner.setup, repositioner.model
-    # independently: every node of a locked element is on bone parts of two segments
+    # independently: the nodes of a locked element not on a bone part are its free nodes, and
+    # its bone nodes lie on two segments
     on = {s: np.zeros(model.n_nodes, bool) for s in ("femur", "tibia", "patella")}
     for s in on:
         on[s][setup.segment_nodes[s]] = True
     locked = pre.locked
-    for etype, row, segments in zip(locked.etype, locked.rows, locked.segments, strict=True):
+    for etype, row, segments, free in zip(
+        locked.etype, locked.rows, locked.segments, locked.free_nodes, strict=True
+    ):
         nodes = model.blocks[etype].conn[row]
         tied = {s for s in on if on[s][nodes].any()}
-        assert all(any(on[s][n] for s in on) for n in nodes)
+        assert sum(not any(on[s][n] for s in on) for n in nodes) == free
         assert len(tied) >= 2 and set(segments) == tied
+    # some with free nodes too, each with a limit: their bone nodes alone leave no valid shape
+    partial = locked.free_nodes > 0
+    assert partial.sum() >= 5
+    assert np.all(
+        np.isfinite(locked.inverts_above_deg[partial])
+        | np.isfinite(locked.inverts_below_deg[partial])
+    )
     assert np.all(pre.locked.inverts_above_deg[np.isfinite(pre.locked.inverts_above_deg)] > 9.0)
 
 
@@ -192,7 +278,9 @@ def test_welded_limits_are_where_the_pose_inverts(welded):
     its limit and inverted at it."""
     repositioner, pre = welded
     model = repositioner.model
-    finite = np.flatnonzero(np.isfinite(pre.locked.inverts_above_deg))
+    finite = np.flatnonzero(
+        np.isfinite(pre.locked.inverts_above_deg) & (pre.locked.free_nodes == 0)
+    )
     assert len(finite) >= 5
     for k in finite[:6]:
         etype, row = str(pre.locked.etype[k]), int(pre.locked.rows[k])
