@@ -32,6 +32,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from kneegui.meshopt.foldover_kernel import foldover_free_energy
+from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
 from kneegui.meshopt.quality_optimiser import QualityOptimisationReport
 from kneegui.quality.kernels import corner_determinants
 
@@ -308,6 +309,7 @@ class FoldoverEnergy:
         if self.virtual_t is not None:
             diag = diag[:m] + self.virtual_t.multiply(self.virtual_t) @ diag[m:]
         self.diagonal = diag[:m]
+        self._buffers: NDArray[np.float64] | None = None
 
     def augment(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Local real coordinates (m, 3) followed by the virtual nodes' coordinates."""
@@ -318,12 +320,44 @@ class FoldoverEnergy:
         xa = np.ascontiguousarray(self.augment(x))
         grad = np.empty_like(xa)
         det = np.empty(len(self.tets))
-        energy = foldover_free_energy(
-            xa, self.tets, self.g_rows, self.weight, self.theta, eps, grad, det
-        )
+        if len(self.tets) < PARALLEL_MIN_ELEMENTS:
+            energy = foldover_free_energy(
+                xa, self.tets, self.g_rows, self.weight, self.theta, eps, grad, det
+            )
+        else:
+            energy = self._energy_in_parts(xa, eps, grad, det)
         if self.virtual_t is not None:
             grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
         return self._add_shells(x, eps, float(energy), grad, det)
+
+    def _energy_in_parts(self, xa, eps, grad, det) -> float:
+        """The compiled energy over fixed parts of the corners, each into its own gradient
+        buffer, added in order (:mod:`kneegui.meshopt.parallel`)."""
+        cut = part_bounds(len(self.tets))
+        if self._buffers is None or self._buffers.shape[1:] != xa.shape:
+            self._buffers = np.empty((PARTS, *xa.shape))
+        buffers = self._buffers
+
+        def part(k: int) -> float:
+            a, b = cut[k], cut[k + 1]
+            return float(
+                foldover_free_energy(
+                    xa,
+                    self.tets[a:b],
+                    self.g_rows[a:b],
+                    self.weight[a:b],
+                    self.theta,
+                    eps,
+                    buffers[k],
+                    det[a:b],
+                )
+            )
+
+        total = 0.0
+        for value in run_parts(part):  # in order: the sum does not depend on the thread count
+            total += value
+        np.sum(buffers, axis=0, out=grad)
+        return total
 
     def _add_shells(self, x, eps, energy, grad, det):
         if len(self.quads) == 0:

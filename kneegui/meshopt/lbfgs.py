@@ -6,6 +6,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 
@@ -17,14 +18,57 @@ class _MinimizeResult:
     nfev: int
 
 
+@njit(cache=True, nogil=True)
+def _dot_compiled(a, b):  # pragma: no cover - compiled
+    total = 0.0
+    for i in range(a.shape[0]):
+        total += a[i] * b[i]
+    return total
+
+
 def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
-    """Dot product of two vectors that does not depend on the BLAS thread count.
+    """Dot product of two vectors that does not depend on the BLAS thread count or the CPU.
 
     ``a @ b`` goes to BLAS, which splits long vectors over threads and sums the parts in another
     order: the relaxation then followed other paths on machines with other core counts (the
-    default demo at 120 degrees: 0 inverted elements with one OpenBLAS thread, 1 with two).
+    default demo at 120 degrees: 0 inverted elements with one OpenBLAS thread, 1 with two). A
+    compiled loop adds in index order (no fast-math: the compiler may not reorder the sum).
     """
-    return float(np.einsum("i,i->", a, b))
+    return float(_dot_compiled(a, b))
+
+
+@njit(cache=True, nogil=True)
+def _two_loop(g, s_mem, y_mem, rho, order):  # pragma: no cover - compiled
+    """The L-BFGS direction ``-H g`` (Nocedal & Wright, algorithm 7.4) from the correction
+    pairs ``s_mem[order[k]], y_mem[order[k]]``, oldest first; every sum in index order."""
+    q = g.copy()
+    count = order.shape[0]
+    alpha = np.empty(count)
+    for k in range(count - 1, -1, -1):
+        i = order[k]
+        a = rho[i] * _dot_compiled(s_mem[i], q)
+        alpha[k] = a
+        for j in range(q.shape[0]):
+            q[j] -= a * y_mem[i, j]
+    if count:
+        i = order[count - 1]
+        gamma = _dot_compiled(s_mem[i], y_mem[i]) / _dot_compiled(y_mem[i], y_mem[i])
+        for j in range(q.shape[0]):
+            q[j] *= gamma
+    else:
+        scale = 1.0
+        for j in range(g.shape[0]):
+            scale = max(scale, abs(g[j]))
+        for j in range(q.shape[0]):
+            q[j] /= scale
+    for k in range(count):
+        i = order[k]
+        b = alpha[k] - rho[i] * _dot_compiled(y_mem[i], q)
+        for j in range(q.shape[0]):
+            q[j] += b * s_mem[i, j]
+    for j in range(q.shape[0]):
+        q[j] = -q[j]
+    return q
 
 
 def minimize_lbfgs(
@@ -54,27 +98,17 @@ def minimize_lbfgs(
     x = np.array(x0, dtype=np.float64, copy=True)
     f, g = fun(x)
     nfev = 1
-    s_list: list[NDArray] = []
-    y_list: list[NDArray] = []
-    rho: list[float] = []
+    # correction pairs in a ring buffer; ``order`` lists the live slots, oldest first
+    s_mem = np.zeros((memory, len(x)))
+    y_mem = np.zeros((memory, len(x)))
+    rho = np.zeros(memory)
+    order: list[int] = []
     it = 0
     for it in range(1, max_iterations + 1):
-        q = g.copy()
-        alpha = []
-        for s_i, y_i, r_i in zip(reversed(s_list), reversed(y_list), reversed(rho), strict=True):
-            a_i = r_i * _dot(s_i, q)
-            alpha.append(a_i)
-            q -= a_i * y_i
-        if s_list:
-            q *= _dot(s_list[-1], y_list[-1]) / _dot(y_list[-1], y_list[-1])
-        else:
-            q /= max(float(np.abs(g).max()), 1.0)
-        for s_i, y_i, r_i, a_i in zip(s_list, y_list, rho, reversed(alpha), strict=True):
-            q += (a_i - r_i * _dot(y_i, q)) * s_i
-        d = -q
+        d = _two_loop(g, s_mem, y_mem, rho, np.array(order, dtype=np.int64))
         slope = _dot(g, d)
         if slope >= 0:  # not a descent direction: forget the curvature pairs
-            s_list.clear(), y_list.clear(), rho.clear()
+            order.clear()
             d = -g / max(float(np.abs(g).max()), 1.0)
             slope = _dot(g, d)
         if slope == 0:
@@ -92,9 +126,9 @@ def minimize_lbfgs(
         s_k, y_k = x_new - x, g_new - g
         sy = _dot(s_k, y_k)
         if sy > 1e-12 * np.sqrt(_dot(s_k, s_k) * _dot(y_k, y_k)):
-            s_list.append(s_k), y_list.append(y_k), rho.append(1.0 / sy)
-            if len(s_list) > memory:
-                s_list.pop(0), y_list.pop(0), rho.pop(0)
+            slot = order.pop(0) if len(order) == memory else len(order)
+            s_mem[slot], y_mem[slot], rho[slot] = s_k, y_k, 1.0 / sy
+            order.append(slot)
         converged = (f - f_new) <= ftol * max(abs(f), abs(f_new), 1.0)
         x, f, g = x_new, f_new, g_new
         if converged:

@@ -386,3 +386,43 @@ def face_shape_penalty(  # pragma: no cover - compiled
             grad[p3, 1] += gby - gay
             grad[p3, 2] += gbz - gaz
     return total
+
+
+@njit(cache=True, nogil=True)
+def scatter_free(work, free, v, h):  # pragma: no cover - compiled
+    """``work[free[r]] = v[3 r : 3 r + 3] * h[r]`` (the scaled variables back to coordinates)."""
+    for r in range(free.shape[0]):
+        for j in range(3):
+            work[free[r], j] = v[3 * r + j] * h[r, 0]
+
+
+@njit(cache=True, nogil=True)
+def anchor_and_constraints(  # pragma: no cover - compiled
+    v, h, start, free, grad, anchor, c_rows, c_normals, c_offsets, stiffness, out
+):
+    """The optimiser's objective beyond the penalties, over the free nodes' scaled variables
+    ``v`` (``x = v h``): ``anchor * |(x - start) / h|^2`` plus ``stiffness * min(0, n . x -
+    offset)^2`` per constraint row; writes the whole gradient with respect to ``v`` (the
+    penalties' ``grad`` at the free nodes included) into ``out``, returns the added value.
+    Sums run in index order."""
+    total = 0.0
+    for r in range(free.shape[0]):
+        hr = h[r, 0]
+        for j in range(3):
+            dx = (v[3 * r + j] * hr - start[r, j]) / hr
+            total += anchor * dx * dx
+            out[3 * r + j] = grad[free[r], j] + 2.0 * anchor * dx / hr
+    for k in range(c_rows.shape[0]):
+        r = c_rows[k]
+        hr = h[r, 0]
+        gap = -c_offsets[k]
+        for j in range(3):
+            gap += c_normals[k, j] * v[3 * r + j] * hr
+        if gap < 0.0:
+            total += stiffness * gap * gap
+            for j in range(3):
+                out[3 * r + j] += 2.0 * stiffness * gap * c_normals[k, j]
+    for r in range(free.shape[0]):
+        for j in range(3):
+            out[3 * r + j] *= h[r, 0]
+    return total

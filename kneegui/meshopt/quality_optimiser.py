@@ -42,7 +42,13 @@ from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled
 from kneegui.meshopt.lbfgs import minimize_lbfgs
-from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_penalty
+from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
+from kneegui.meshopt.quality_kernel import (
+    anchor_and_constraints,
+    corner_ratio_penalty,
+    face_shape_penalty,
+    scatter_free,
+)
 from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult, compute_quality
@@ -170,6 +176,8 @@ def shortfall_region(
     candidates: NDArray[np.int64],
     rings: int = 2,
     seeds: NDArray[np.int64] | None = None,
+    face_metrics: tuple[str, ...] = ("aspect", "warpage", "skew"),
+    misses: bool = True,
 ) -> NDArray[np.int64]:
     """Candidate nodes within ``rings`` elements of an element that misses one of its aims (or
     of one of ``seeds``).
@@ -185,6 +193,10 @@ def shortfall_region(
         Element layers the region grows by around the elements that miss an aim.
     seeds : (S,) ndarray of int, optional
         More nodes to grow the region from (e.g. nodes that break a constraint).
+    face_metrics : tuple of str
+        The face measures whose aims count (the corner Jacobian's and the volume's always do).
+    misses : bool
+        False: grow from ``seeds`` alone (no element is measured).
 
     Returns
     -------
@@ -200,9 +212,11 @@ def shortfall_region(
     conns = {}
     for etype, block, conn, rows in _blocks_touching(blocks, allowed):
         conns[etype] = conn[rows]
+        if not misses:
+            continue
         q = compute_quality(coords, {etype: block}, rows={etype: rows})[etype]
         miss = q.jacobian_corner < aims.jacobian.get(etype, np.zeros(len(block)))[rows]
-        for metric in ("aspect", "warpage", "skew"):
+        for metric in face_metrics:
             limit = getattr(aims, metric).get(etype)
             if limit is not None:
                 miss |= q.metric(metric) > limit[rows]
@@ -257,6 +271,13 @@ class QualityOptions:
         After the rounds, at most this many more against freshly evaluated constraints, the
         stiffness four times higher each time, while a node is farther than
         ``constraint_tolerance`` on the wrong side of its constraint.
+    active_rings, active_shrink : int, float
+        After the first round, each round moves only the free nodes within ``active_rings``
+        elements of an element that still misses an aim or of a node past its constraint
+        (:func:`shortfall_region`), when they are at most ``active_shrink`` of the nodes the
+        round before moved (0 never narrows). On the 20k demo at 90 deg the first round leaves
+        438 of 7,936 elements below their aims and the fifteenth 11: the later rounds need not
+        move the 7,302 nodes again.
     """
 
     margin: float = 0.08
@@ -269,6 +290,9 @@ class QualityOptions:
     constraint_tolerance: float = 0.05
     tolerance: float = 0.02
     settling_rounds: int = 6
+    active_rings: int = 2
+    active_shrink: float = 0.7
+    active_face_metrics: tuple[str, ...] = ("aspect", "warpage", "skew")
 
     def scaled(self, length: float) -> QualityOptions:
         """These options for a model drawn ``length`` times larger (or in other units): the
@@ -298,6 +322,9 @@ class QualityOptimisationReport:
     max_displacement : float
         Largest node displacement (model units).
     seconds : float
+    active_nodes : list of int
+        Free nodes each round moved (the first round moves them all, later ones only those
+        around what still misses an aim).
     """
 
     free_nodes: int = 0
@@ -312,6 +339,7 @@ class QualityOptimisationReport:
     max_displacement: float = 0.0
     seconds: float = 0.0
     region_seconds: float = 0.0  # the caller's search for the region (not in ``seconds``)
+    active_nodes: list[int] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""
@@ -539,6 +567,60 @@ def corner_ratio_penalty_numpy(
     return total, grad
 
 
+class _SplitPenalty:
+    """The problem's penalty in fixed parts (:mod:`kneegui.meshopt.parallel`)."""
+
+    def __init__(self, pr: _Problem) -> None:
+        n_solids = len(pr.elem_ptr) - 1
+        e_cut = part_bounds(n_solids)
+        q_cut = part_bounds(len(pr.quads))
+        f_cut = part_bounds(len(pr.faces))
+        self.parts = []
+        for k in range(PARTS):
+            e0, e1 = e_cut[k], e_cut[k + 1]
+            c0, c1 = pr.elem_ptr[e0], pr.elem_ptr[e1]
+            q0, q1 = q_cut[k], q_cut[k + 1]
+            f0, f1 = f_cut[k], f_cut[k + 1]
+            corner_args = (
+                pr.corners[c0:c1],
+                pr.elem_ptr[e0 : e1 + 1] - c0,
+                pr.log_aim[e0:e1],
+                pr.log_volume[e0:e1],
+                pr.volume_band[e0:e1],
+                pr.volume_weight,
+                pr.quads[q0:q1],
+                QUAD_TRIPLES,
+                pr.quad_log_aim[q0:q1],
+            )
+            face_args = (
+                pr.faces[f0:f1],
+                pr.log_aspect_aim[f0:f1],
+                pr.warp_aim[f0:f1],
+                pr.skew_aim[f0:f1],
+                pr.weights,
+            )
+            self.parts.append((corner_args, face_args))
+        self.buffers = np.zeros((PARTS, len(pr.nodes), 3))
+
+    def __call__(self, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
+        def part(k: int) -> float:
+            corner_args, face_args = self.parts[k]
+            buffer = self.buffers[k]
+            value = corner_ratio_penalty(x, *corner_args, buffer)  # zeroes the buffer first
+            if not np.isfinite(value):
+                return np.inf
+            return float(value) + float(face_shape_penalty(x, *face_args, buffer))
+
+        values = run_parts(part)
+        total = 0.0
+        for value in values:  # in order: the sum does not depend on the thread count
+            total += value
+        if not np.isfinite(total):
+            return np.inf
+        np.sum(self.buffers, axis=0, out=grad)
+        return total
+
+
 def _penalty(pr: _Problem, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
     """Corner and face penalties at local coordinates ``x``; fills ``grad``."""
     value = corner_ratio_penalty(x, *pr.corner_args(), grad)
@@ -561,13 +643,20 @@ class _Objective:
         h: NDArray[np.float64],
         anchor: float,
         stiffness: float,
+        start: NDArray[np.float64] | None = None,
     ) -> None:
         self.pr, self.h, self.anchor, self.stiffness = pr, h, anchor, stiffness
         self.work = x.copy()
-        self.start = x[pr.free].copy()
+        self.start = (x[pr.free] if start is None else start).copy()
         self.grad = np.zeros_like(x)
         self.c_rows = np.zeros(0, dtype=np.int64)
         self.c_normals, self.c_offsets = np.zeros((0, 3)), np.zeros(0)
+        n_elements = len(pr.elem_ptr) - 1 + len(pr.quads)
+        self.penalty = (
+            _SplitPenalty(pr)
+            if n_elements >= PARALLEL_MIN_ELEMENTS
+            else lambda x, grad: _penalty(pr, x, grad)
+        )
 
     def set_constraints(
         self,
@@ -576,7 +665,9 @@ class _Objective:
         offsets: NDArray[np.float64],
     ) -> None:
         """Keep these free rows on the side ``normal . x >= offset``."""
-        self.c_rows, self.c_normals, self.c_offsets = rows, normals, offsets
+        self.c_rows = np.ascontiguousarray(rows, dtype=np.int64)
+        self.c_normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
+        self.c_offsets = np.ascontiguousarray(offsets, dtype=np.float64)
 
     def deepest_violation(self, v: NDArray[np.float64]) -> float:
         """Largest distance (model units) by which a node is on the wrong side of its plane."""
@@ -588,20 +679,25 @@ class _Objective:
 
     def __call__(self, v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         pr, h = self.pr, self.h
-        p = v.reshape(-1, 3) * h
-        self.work[pr.free] = p
-        value = _penalty(pr, self.work, self.grad)
+        scatter_free(self.work, pr.free, v, h)
+        value = self.penalty(self.work, self.grad)
         if not np.isfinite(value):
             return np.inf, np.zeros_like(v)
-        dx = (p - self.start) / h
-        value += self.anchor * float(np.einsum("ij,ij->", dx, dx))
-        g = self.grad[pr.free] + (2.0 * self.anchor) * dx / h
-        if len(self.c_rows):
-            gap = np.einsum("ij,ij->i", self.c_normals, p[self.c_rows]) - self.c_offsets
-            short = np.minimum(gap, 0.0)
-            value += self.stiffness * float(np.einsum("i,i->", short, short))
-            np.add.at(g, self.c_rows, (2.0 * self.stiffness * short)[:, None] * self.c_normals)
-        return value, (g * h).ravel()
+        out = np.empty_like(v)
+        value += anchor_and_constraints(
+            v,
+            h,
+            self.start,
+            pr.free,
+            self.grad,
+            self.anchor,
+            self.c_rows,
+            self.c_normals,
+            self.c_offsets,
+            self.stiffness,
+            out,
+        )
+        return value, out
 
 
 def _node_lengths(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -615,6 +711,50 @@ def _node_lengths(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float64]:
     h = total[pr.free] / np.maximum(count[pr.free], 1)
     fallback = float(h[h > 0].mean()) if np.any(h > 0) else 1.0
     return np.where(h > 0, h, fallback)[:, None]
+
+
+def _no_constraints() -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+
+
+class _Stage:
+    """The problem over one set of free nodes: its elements, the free nodes' length scales
+    (from the start coordinates, or from ``lengths``' stage where it has them) and the map from
+    global node ids to free rows."""
+
+    def __init__(
+        self,
+        blocks: Mapping[str, ElementBlock],
+        start: NDArray[np.float64],
+        free: NDArray[np.int64],
+        aims: QualityAims,
+        options: QualityOptions,
+        lengths: _Stage | None = None,
+    ) -> None:
+        self.pr = _build_problem(blocks, len(start), free, aims, options)
+        self.start = start[self.pr.nodes[self.pr.free]]
+        self.options = options
+        global_free = self.pr.nodes[self.pr.free]
+        if lengths is None:
+            self.h = _node_lengths(self.pr, start[self.pr.nodes])
+        else:  # the same scaling as the first stage: the rounds see one problem, narrowed
+            self.h = lengths.h[lengths.row_of[global_free]]
+        self.row_of = np.full(len(start), -1, dtype=np.int64)
+        self.row_of[global_free] = np.arange(len(global_free))
+
+    def objective(
+        self,
+        x: NDArray[np.float64],
+        stiffness: float,
+        constraints: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]],
+    ) -> _Objective:
+        """The objective at local coordinates ``x`` against global ``constraints``."""
+        objective = _Objective(self.pr, x, self.h, self.options.anchor, stiffness, self.start)
+        nodes, normals, offsets = constraints
+        rows = self.row_of[nodes]
+        keep = rows >= 0
+        objective.set_constraints(rows[keep], normals[keep], offsets[keep])
+        return objective
 
 
 def optimise_quality(
@@ -665,81 +805,115 @@ def optimise_quality(
     report_progress = progress or (lambda fraction, message: None)
     should_cancel = cancel or (lambda: False)
     t0 = time.perf_counter()
-    x_all = np.array(coords, dtype=np.float64, copy=True)
+    start_all = np.array(coords, dtype=np.float64, copy=True)
+    x_all = start_all.copy()
     free_nodes = np.unique(np.asarray(free_nodes, dtype=np.int64))
-    pr = _build_problem(blocks, len(x_all), free_nodes, aims, opt)
-    if len(pr.free) == 0:
+    whole = _Stage(blocks, start_all, free_nodes, aims, opt)
+    pr0 = whole.pr
+    if len(pr0.free) == 0:
         return x_all, QualityOptimisationReport(seconds=time.perf_counter() - t0)
-    x = x_all[pr.nodes].copy()
-    j_before = _element_jacobians(pr, x)
+    j_before = _element_jacobians(pr0, x_all[pr0.nodes])
     if np.any(j_before <= 0):
         raise ValueError("optimise_quality needs an untangled mesh: some elements are inverted")
-    row_of = np.full(len(x_all), -1)
-    row_of[pr.nodes[pr.free]] = np.arange(len(pr.free))
-    h = _node_lengths(pr, x)
-    start = x[pr.free].copy()
-    objective = _Objective(pr, x, h, opt.anchor, opt.constraint_stiffness)
+    stage = whole
     iterations = evaluations = rounds = 0
-    previous = np.inf
-    converged = False
-    for rnd in range(opt.rounds):
-        if should_cancel():
-            raise Cancelled("quality optimisation cancelled")
-        v0 = (x[pr.free] / h).ravel()
+    active_sizes: list[int] = []
+    stiffness = opt.constraint_stiffness
+    fresh = _no_constraints()
+
+    def refresh_constraints() -> None:
+        nonlocal fresh
         if constraints is not None:
-            x_all[pr.nodes] = x
             nodes, normals, offsets = constraints(x_all)
-            rows = row_of[np.asarray(nodes, dtype=np.int64)]
-            keep = rows >= 0
-            objective.set_constraints(
-                rows[keep], np.asarray(normals)[keep], np.asarray(offsets)[keep]
-            )
-            if converged and objective.deepest_violation(v0) <= opt.constraint_tolerance:
-                break
-        elif converged:
-            break
+            fresh = (np.asarray(nodes, dtype=np.int64), np.asarray(normals), np.asarray(offsets))
+
+    def narrowed(current: _Stage, settling: bool = False) -> _Stage:
+        """The stage over the nodes still around a shortfall or a violated constraint (the
+        rest already meets its aims and stays put), when that is markedly fewer nodes; when
+        ``settling``, around the violated constraints alone (the rounds are over, only the
+        constraints are left to settle)."""
+        if opt.active_shrink <= 0.0:
+            return current
+        nodes, normals, offsets = fresh
+        gap = np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
+        seeds = nodes[gap < -opt.constraint_tolerance]
+        active = shortfall_region(
+            x_all,
+            blocks,
+            aims,
+            free_nodes,
+            opt.active_rings,
+            seeds,
+            opt.active_face_metrics,
+            misses=not settling,
+        )
+        if len(active) == 0 or len(active) > opt.active_shrink * len(current.pr.free):
+            return current
+        return _Stage(blocks, start_all, active, aims, opt, lengths=whole)
+
+    def run_round(current: _Stage) -> tuple[float, float]:
+        """One L-BFGS run on ``current`` against the fresh constraints; the objective before
+        and after."""
+        nonlocal iterations, evaluations, rounds
+        x = x_all[current.pr.nodes]
+        objective = current.objective(x, stiffness, fresh)
+        v0 = (x[current.pr.free] / current.h).ravel()
+        before = objective(v0)[0]
         result = minimize_lbfgs(objective, v0, opt.iterations_per_round)
-        x[pr.free] = result.x.reshape(-1, 3) * h
+        x_all[current.pr.nodes[current.pr.free]] = result.x.reshape(-1, 3) * current.h
         rounds += 1
         iterations += int(result.nit)
         evaluations += int(result.nfev)
+        active_sizes.append(len(current.pr.free))
+        return float(before), float(result.fun)
+
+    def deepest_violation() -> float:
+        nodes, normals, offsets = fresh
+        if len(nodes) == 0:
+            return 0.0
+        gap = np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
+        return float(max(0.0, -gap.min()))
+
+    for rnd in range(opt.rounds):
+        if should_cancel():
+            raise Cancelled("quality optimisation cancelled")
+        refresh_constraints()
+        if rnd:
+            stage = narrowed(stage)
+        before, after = run_round(stage)
         report_progress((rnd + 1) / opt.rounds, "optimising element quality")
-        converged = result.fun <= 1e-12 or previous - result.fun <= opt.tolerance * result.fun
-        previous = float(result.fun)
+        converged = after <= 1e-12 or before - after <= opt.tolerance * after
+        if converged:
+            refresh_constraints()
+            if deepest_violation() <= opt.constraint_tolerance:
+                break
     if constraints is not None:
         # The planes of the last round were set before that round moved the nodes (some by
         # several millimetres): a node can end past a bone surface its planes did not describe.
         # Settle against fresh planes, stiffer each time, until every node is within the
         # tolerance, so the result never hinges on where the round count ran out.
         for _ in range(opt.settling_rounds):
-            x_all[pr.nodes] = x
-            nodes, normals, offsets = constraints(x_all)
-            rows = row_of[np.asarray(nodes, dtype=np.int64)]
-            keep = rows >= 0
-            objective.set_constraints(
-                rows[keep], np.asarray(normals)[keep], np.asarray(offsets)[keep]
-            )
-            v0 = (x[pr.free] / h).ravel()
-            if objective.deepest_violation(v0) <= opt.constraint_tolerance:
+            if should_cancel():
+                raise Cancelled("quality optimisation cancelled")
+            refresh_constraints()
+            if deepest_violation() <= opt.constraint_tolerance:
                 break
-            objective.stiffness *= 4.0
-            result = minimize_lbfgs(objective, v0, opt.iterations_per_round)
-            x[pr.free] = result.x.reshape(-1, 3) * h
-            rounds += 1
-            iterations += int(result.nit)
-            evaluations += int(result.nfev)
-    j_after = _element_jacobians(pr, x)
-    x_all[pr.nodes] = x
+            stiffness *= 4.0
+            stage = narrowed(stage, settling=True)
+            run_round(stage)
+    j_after = _element_jacobians(pr0, x_all[pr0.nodes])
+    moved = x_all[pr0.nodes[pr0.free]] - start_all[pr0.nodes[pr0.free]]
     return x_all, QualityOptimisationReport(
-        free_nodes=len(pr.free),
+        free_nodes=len(pr0.free),
         elements=len(j_before),
-        below_aim_before=int(np.sum(j_before < pr.jacobian_aim)),
-        below_aim_after=int(np.sum(j_after < pr.jacobian_aim)),
+        below_aim_before=int(np.sum(j_before < pr0.jacobian_aim)),
+        below_aim_after=int(np.sum(j_after < pr0.jacobian_aim)),
         worst_before=float(j_before.min(initial=np.inf)),
         worst_after=float(j_after.min(initial=np.inf)),
         rounds=rounds,
         iterations=iterations,
         evaluations=evaluations,
-        max_displacement=float(np.linalg.norm(x[pr.free] - start, axis=1).max(initial=0.0)),
+        max_displacement=float(np.linalg.norm(moved, axis=1).max(initial=0.0)),
         seconds=time.perf_counter() - t0,
+        active_nodes=active_sizes,
     )

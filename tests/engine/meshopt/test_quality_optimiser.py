@@ -280,8 +280,10 @@ def test_rounds_end_only_when_fresh_constraints_hold(block_model):
         near = x[watched, 0] - limit < band
         return watched[near], np.tile([1.0, 0.0, 0.0], (int(near.sum()), 1)), limit[near]
 
-    def run(settle: int):
-        options = QualityOptions(rounds=1, constraint_stiffness=1e4, settling_rounds=settle)
+    def run(settle: int, rings: int = 2):
+        options = QualityOptions(
+            rounds=1, constraint_stiffness=1e4, settling_rounds=settle, active_rings=rings
+        )
         return optimise_quality(coords, model.blocks, interior, aims, constraints=wall,
                                 options=options)  # fmt: skip
 
@@ -291,6 +293,11 @@ def test_rounds_end_only_when_fresh_constraints_hold(block_model):
     out, report = run(QualityOptions().settling_rounds)
     assert np.max(limit - out[watched, 0]) <= 0.5 * tolerance
     assert report.rounds > 1
+    # narrowed to the nodes past the wall (no ring around them), the settling still settles
+    out, report = run(QualityOptions().settling_rounds, rings=0)
+    assert np.max(limit - out[watched, 0]) <= 0.5 * tolerance
+    assert report.active_nodes[0] == len(interior) == report.free_nodes
+    assert 0 < max(report.active_nodes[1:]) <= len(watched) < len(interior)
     assert compute_quality(out, model.blocks).n_inverted == 0
 
 
