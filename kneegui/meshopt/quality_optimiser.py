@@ -874,6 +874,7 @@ def optimise_quality(
         gap = np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
         return float(max(0.0, -gap.min()))
 
+    previous = np.inf
     for rnd in range(opt.rounds):
         if should_cancel():
             raise Cancelled("quality optimisation cancelled")
@@ -882,11 +883,12 @@ def optimise_quality(
             stage = narrowed(stage)
         before, after = run_round(stage)
         report_progress((rnd + 1) / opt.rounds, "optimising element quality")
-        converged = after <= 1e-12 or before - after <= opt.tolerance * after
-        if converged:
-            refresh_constraints()
-            if deepest_violation() <= opt.constraint_tolerance:
-                break
+        # against the last round's end, not this round's start: refitted planes add to the
+        # start what the round then takes off again
+        if after <= 1e-12 or min(before, previous) - after <= opt.tolerance * after:
+            # what is left past a plane is the settling's, on the nodes around it alone
+            break
+        previous = after
     if constraints is not None:
         # The planes of the last round were set before that round moved the nodes (some by
         # several millimetres): a node can end past a bone surface its planes did not describe.
