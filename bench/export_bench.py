@@ -6,8 +6,8 @@ process per size: the precompute (``Repositioner``) and one ``export_pose`` at 9
 relaxation, smoothing, quality, write), the export's time split into region finding,
 relaxation, smoothing, quality and write, the size of the relaxed region beside the model's,
 the final worst Jacobian and inverted count, and the process's peak resident memory. Wall and
-CPU seconds are both recorded: on a shared machine the CPU time of a single-threaded stage is
-the better estimate of its idle wall time. Results: bench/results/export_scaling.json, the
+CPU seconds are both recorded (the solvers' kernels use up to 4 threads, so on an idle machine
+the CPU time exceeds the wall time). Results: bench/results/export_scaling.json, the
 table in docs/benchmarks.md (between its ``export-scaling`` markers, also rendered by
 :mod:`bench.report`) and docs/images/export-scaling.png.
 """
@@ -115,8 +115,9 @@ def markdown(results: dict[str, Any]) -> list[str]:
         "",
         f"One export at {results.get('angle', ANGLE):g}° (`export_pose`: pose, relaxation, "
         "smoothing, quality, write) per demo size, each in a fresh process, one run each; "
-        "wall time with the CPU time in brackets (on a shared machine the CPU time of these "
-        "single-threaded stages is the better estimate of an idle run). "
+        "wall time with the CPU time in brackets (the solvers' kernels run on up to 4 threads, "
+        "so the CPU time exceeds the wall time on an idle machine; on a shared one the wall "
+        "time grows with the other load). "
         "![export time against model size](images/export-scaling.png)",
         "",
     ]
