@@ -176,7 +176,6 @@ def shortfall_region(
     candidates: NDArray[np.int64],
     rings: int = 2,
     seeds: NDArray[np.int64] | None = None,
-    face_metrics: tuple[str, ...] = ("aspect", "warpage", "skew"),
     misses: bool = True,
 ) -> NDArray[np.int64]:
     """Candidate nodes within ``rings`` elements of an element that misses one of its aims (or
@@ -193,8 +192,6 @@ def shortfall_region(
         Element layers the region grows by around the elements that miss an aim.
     seeds : (S,) ndarray of int, optional
         More nodes to grow the region from (e.g. nodes that break a constraint).
-    face_metrics : tuple of str
-        The face measures whose aims count (the corner Jacobian's and the volume's always do).
     misses : bool
         False: grow from ``seeds`` alone (no element is measured).
 
@@ -216,7 +213,7 @@ def shortfall_region(
             continue
         q = compute_quality(coords, {etype: block}, rows={etype: rows})[etype]
         miss = q.jacobian_corner < aims.jacobian.get(etype, np.zeros(len(block)))[rows]
-        for metric in face_metrics:
+        for metric in ("aspect", "warpage", "skew"):
             limit = getattr(aims, metric).get(etype)
             if limit is not None:
                 miss |= q.metric(metric) > limit[rows]
@@ -292,7 +289,6 @@ class QualityOptions:
     settling_rounds: int = 6
     active_rings: int = 2
     active_shrink: float = 0.7
-    active_face_metrics: tuple[str, ...] = ("aspect", "warpage", "skew")
 
     def scaled(self, length: float) -> QualityOptions:
         """These options for a model drawn ``length`` times larger (or in other units): the
@@ -621,6 +617,13 @@ class _SplitPenalty:
         return total
 
 
+def _penalty_of(pr: _Problem) -> Callable[[NDArray[np.float64], NDArray[np.float64]], float]:
+    """``penalty(x, grad)`` of the problem: in fixed parts on threads when it is large."""
+    if len(pr.elem_ptr) - 1 + len(pr.quads) >= PARALLEL_MIN_ELEMENTS:
+        return _SplitPenalty(pr)
+    return lambda x, grad: _penalty(pr, x, grad)
+
+
 def _penalty(pr: _Problem, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
     """Corner and face penalties at local coordinates ``x``; fills ``grad``."""
     value = corner_ratio_penalty(x, *pr.corner_args(), grad)
@@ -644,6 +647,7 @@ class _Objective:
         anchor: float,
         stiffness: float,
         start: NDArray[np.float64] | None = None,
+        penalty: Callable[[NDArray[np.float64], NDArray[np.float64]], float] | None = None,
     ) -> None:
         self.pr, self.h, self.anchor, self.stiffness = pr, h, anchor, stiffness
         self.work = x.copy()
@@ -651,12 +655,7 @@ class _Objective:
         self.grad = np.zeros_like(x)
         self.c_rows = np.zeros(0, dtype=np.int64)
         self.c_normals, self.c_offsets = np.zeros((0, 3)), np.zeros(0)
-        n_elements = len(pr.elem_ptr) - 1 + len(pr.quads)
-        self.penalty = (
-            _SplitPenalty(pr)
-            if n_elements >= PARALLEL_MIN_ELEMENTS
-            else lambda x, grad: _penalty(pr, x, grad)
-        )
+        self.penalty = penalty or _penalty_of(pr)
 
     def set_constraints(
         self,
@@ -668,14 +667,6 @@ class _Objective:
         self.c_rows = np.ascontiguousarray(rows, dtype=np.int64)
         self.c_normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
         self.c_offsets = np.ascontiguousarray(offsets, dtype=np.float64)
-
-    def deepest_violation(self, v: NDArray[np.float64]) -> float:
-        """Largest distance (model units) by which a node is on the wrong side of its plane."""
-        if len(self.c_rows) == 0:
-            return 0.0
-        p = v.reshape(-1, 3)[self.c_rows] * self.h[self.c_rows]
-        gap = np.einsum("ij,ij->i", self.c_normals, p) - self.c_offsets
-        return float(max(0.0, -gap.min()))
 
     def __call__(self, v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         pr, h = self.pr, self.h
@@ -741,6 +732,7 @@ class _Stage:
             self.h = lengths.h[lengths.row_of[global_free]]
         self.row_of = np.full(len(start), -1, dtype=np.int64)
         self.row_of[global_free] = np.arange(len(global_free))
+        self.penalty = _penalty_of(self.pr)  # its buffers serve every round on this stage
 
     def objective(
         self,
@@ -749,7 +741,9 @@ class _Stage:
         constraints: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]],
     ) -> _Objective:
         """The objective at local coordinates ``x`` against global ``constraints``."""
-        objective = _Objective(self.pr, x, self.h, self.options.anchor, stiffness, self.start)
+        objective = _Objective(
+            self.pr, x, self.h, self.options.anchor, stiffness, self.start, self.penalty
+        )
         nodes, normals, offsets = constraints
         rows = self.row_of[nodes]
         keep = rows >= 0
@@ -827,6 +821,11 @@ def optimise_quality(
             nodes, normals, offsets = constraints(x_all)
             fresh = (np.asarray(nodes, dtype=np.int64), np.asarray(normals), np.asarray(offsets))
 
+    def gaps() -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """The constrained nodes and how far each is on the right side of its plane."""
+        nodes, normals, offsets = fresh
+        return nodes, np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
+
     def narrowed(current: _Stage, settling: bool = False) -> _Stage:
         """The stage over the nodes still around a shortfall or a violated constraint (the
         rest already meets its aims and stays put), when that is markedly fewer nodes; when
@@ -834,8 +833,7 @@ def optimise_quality(
         constraints are left to settle)."""
         if opt.active_shrink <= 0.0:
             return current
-        nodes, normals, offsets = fresh
-        gap = np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
+        nodes, gap = gaps()
         seeds = nodes[gap < -opt.constraint_tolerance]
         active = shortfall_region(
             x_all,
@@ -844,7 +842,6 @@ def optimise_quality(
             free_nodes,
             opt.active_rings,
             seeds,
-            opt.active_face_metrics,
             misses=not settling,
         )
         if len(active) == 0 or len(active) > opt.active_shrink * len(current.pr.free):
@@ -868,11 +865,7 @@ def optimise_quality(
         return float(before), float(result.fun)
 
     def deepest_violation() -> float:
-        nodes, normals, offsets = fresh
-        if len(nodes) == 0:
-            return 0.0
-        gap = np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
-        return float(max(0.0, -gap.min()))
+        return float(max(0.0, -gaps()[1].min(initial=0.0)))
 
     previous = np.inf
     for rnd in range(opt.rounds):
