@@ -11,6 +11,14 @@ import math
 import numpy as np
 from numba import njit
 
+from kneegui.quality.kernels import TET_COLLAPSE_NORM
+
+#: ``log collapse = log d - 0.75 log |n|^2 + LOG_COLLAPSE_SCALE`` for a tet's six-volume ``d``
+#: and the doubled area vector ``n`` of a face (``h / sqrt(A) = sqrt(2) d / |n|^1.5``).
+LOG_COLLAPSE_SCALE = 0.5 * math.log(2.0) - math.log(TET_COLLAPSE_NORM)
+#: The face opposite each corner of a tet (its other three corners).
+TET_OPPOSITE = np.array([(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)], dtype=np.int64)
+
 
 @njit(cache=True, nogil=True)
 def corner_ratio_penalty(  # pragma: no cover - compiled
@@ -18,6 +26,7 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
     corners,
     elem_ptr,
     log_aim,
+    log_collapse_aim,
     log_volume,
     volume_band,
     volume_weight,
@@ -33,10 +42,15 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
 
     ``x`` (S, 3) coordinates; ``corners`` (C, 4) local node indices (corner node, then the
     three edge ends) of the solids, grouped by element through ``elem_ptr`` (E + 1,);
-    ``log_aim`` (E,); ``quads`` (Q, 4) shell nodes whose corner determinants use the quad's own
-    diagonal normal, ``quad_triples`` (4, 3) their corners, ``quad_log_aim`` (Q,). Fills
-    ``grad`` (S, 3). Returns ``inf`` (and a meaningless gradient) when a corner determinant is
-    not positive: the solver treats that as a rejected step.
+    ``log_aim`` (E,); ``log_collapse_aim`` (E,) the log of the tet collapse each tetrahedron
+    (an element of one corner) should reach, ``-inf`` for none: its penalty is
+    ``sum_i max(0, log aim - log c_i)^2`` over the four nodes' ``c_i = h_i / sqrt(A_i)``
+    (normalised as :data:`~kneegui.quality.kernels.TET_COLLAPSE_NORM`), so a sliver with fair
+    faces, which no face aspect sees, costs; ``quads`` (Q, 4) shell nodes whose corner
+    determinants use the quad's own diagonal normal, ``quad_triples`` (4, 3) their corners,
+    ``quad_log_aim`` (Q,). Fills ``grad`` (S, 3). Returns ``inf`` (and a meaningless
+    gradient) when a corner determinant is not positive: the solver treats that as a rejected
+    step.
     """
     grad[:, :] = 0.0
     total = 0.0
@@ -63,6 +77,20 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
                     total += u * u
                     g_log[i] -= 2.0 * u
                     g_log[j] += 2.0 * u
+        if k == 1 and log_collapse_aim[e] > -math.inf:
+            c = corners[p0]
+            for f in range(4):
+                i0 = c[TET_OPPOSITE[f, 0]]
+                i1 = c[TET_OPPOSITE[f, 1]]
+                i2 = c[TET_OPPOSITE[f, 2]]
+                nx, ny, nz = _normal(x, i0, i1, i2)
+                nn = nx * nx + ny * ny + nz * nz
+                u = log_collapse_aim[e] - (logs[0] - 0.75 * math.log(nn) + LOG_COLLAPSE_SCALE)
+                if u > 0.0:
+                    total += u * u
+                    g_log[0] -= 2.0 * u
+                    # d log|n| = n . dn / |n|^2, and log c falls by 1.5 log|n|
+                    _cross_grad(x, grad, i0, i1, i2, nx, ny, nz, 3.0 * u / nn)
         g_volume = 0.0
         if volume_band[e] < math.inf:
             mean = 0.0

@@ -44,6 +44,8 @@ from kneegui.errors import Cancelled
 from kneegui.meshopt.lbfgs import minimize_lbfgs
 from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
 from kneegui.meshopt.quality_kernel import (
+    LOG_COLLAPSE_SCALE,
+    TET_OPPOSITE,
     anchor_and_constraints,
     corner_ratio_penalty,
     face_shape_penalty,
@@ -65,6 +67,8 @@ ConstraintCallback = Callable[
 #: Solid types with corner determinants (a tet has one corner: only its sign counts; a 10-node
 #: tet is measured by its corner tetrahedron, its mid-side nodes are the caller's).
 SOLID_CORNER_TYPES = ("hex8", "wedge6", "pyramid5", "tet4", "tet10")
+#: Types whose shape is held by the tet collapse (their corner Jacobian is 1 by definition).
+TET_TYPES = ("tet4", "tet10")
 OPTIMISED_TYPES = (*SOLID_CORNER_TYPES, "quad4")
 QUAD_TRIPLES = np.array([t[:3] for t in CORNER_TRIPLES["quad4"]], dtype=np.int64)
 #: Faces of each type as 4 local nodes, triangles padded with -1 (a shell is its own face).
@@ -80,7 +84,8 @@ class QualityAims:
     """Per element of each block (arrays aligned with the block's rows): the corner Jacobian to
     reach, and the aspect ratio, warpage and skew (degrees) not to exceed; for solids, the
     reference volume (the mean of the corner determinants at rest) and the relative volume
-    change allowed either way, ``1 + volume_change`` (``inf``, or no reference: no limit)."""
+    change allowed either way, ``1 + volume_change`` (``inf``, or no reference: no limit); for
+    tetrahedra (whose corner Jacobian is 1 by definition), the tet collapse to reach."""
 
     jacobian: Mapping[str, NDArray[np.float64]]
     aspect: Mapping[str, NDArray[np.float64]]
@@ -88,6 +93,7 @@ class QualityAims:
     skew: Mapping[str, NDArray[np.float64]]
     volume: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
     volume_change: float = np.inf
+    tet_collapse: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
 
 
 def quality_aims(
@@ -120,7 +126,8 @@ def quality_aims(
     Returns
     -------
     QualityAims
-        Jacobian ``min(initial, cap)``; aspect, warpage and skew ``max(initial, warn)``.
+        Jacobian ``min(initial, cap)``; aspect, warpage and skew ``max(initial, warn)``; tet
+        collapse ``min(initial, warn)``.
     """
     levels = (thresholds or default_thresholds()).for_role(None)
     cap = levels["jacobian"].warn if jacobian_cap is None else float(jacobian_cap)
@@ -141,6 +148,14 @@ def quality_aims(
             values = np.full(n, level, dtype=np.float64)
             values[q.rows] = combine(np.nan_to_num(source, nan=level, posinf=1e6), level)
             out[metric][etype] = values
+    collapse: dict[str, NDArray[np.float64]] = {}
+    for etype in TET_TYPES:
+        q = initial[etype] if etype in initial else None
+        if etype in blocks and q is not None and q.tet_collapse is not None:
+            level = levels["tet_collapse"].warn
+            values = np.full(len(blocks[etype]), level, dtype=np.float64)
+            values[q.rows] = np.minimum(np.nan_to_num(q.tet_collapse, nan=level), level)
+            collapse[etype] = values
     volume: dict[str, NDArray[np.float64]] = {}
     if rest_coords is not None and volume_change is not None:
         for etype in SOLID_CORNER_TYPES:
@@ -151,6 +166,7 @@ def quality_aims(
         **out,
         volume=volume,
         volume_change=np.inf if volume_change is None else float(volume_change),
+        tet_collapse=collapse,
     )
 
 
@@ -217,6 +233,9 @@ def shortfall_region(
             limit = getattr(aims, metric).get(etype)
             if limit is not None:
                 miss |= q.metric(metric) > limit[rows]
+        collapse_aim = aims.tet_collapse.get(etype)
+        if collapse_aim is not None and q.tet_collapse is not None:
+            miss |= q.tet_collapse < collapse_aim[rows]
         reference = aims.volume.get(etype)
         if reference is not None and np.isfinite(aims.volume_change):
             volume = corner_determinants(coords[conn[rows]], etype).mean(axis=1)
@@ -313,7 +332,11 @@ class QualityOptimisationReport:
     below_aim_before, below_aim_after : int
         Elements with a corner Jacobian below their aim (without the margin).
     worst_before, worst_after : float
-        Worst corner Jacobian of those elements.
+        Worst corner Jacobian of those elements (1.0 on a tetrahedron, by definition).
+    collapse_below_aim_before, collapse_below_aim_after : int
+        Tetrahedra with a tet collapse below their aim (without the margin).
+    collapse_worst_before, collapse_worst_after : float
+        Worst tet collapse of those tetrahedra (nan without any).
     rounds, iterations, evaluations : int
     max_displacement : float
         Largest node displacement (model units).
@@ -329,6 +352,10 @@ class QualityOptimisationReport:
     below_aim_after: int = 0
     worst_before: float = float("nan")
     worst_after: float = float("nan")
+    collapse_below_aim_before: int = 0
+    collapse_below_aim_after: int = 0
+    collapse_worst_before: float = float("nan")
+    collapse_worst_after: float = float("nan")
     rounds: int = 0
     iterations: int = 0
     evaluations: int = 0
@@ -351,6 +378,8 @@ class _Problem:
     corners: NDArray[np.int64]  # (C, 4) solid corners, grouped by element
     elem_ptr: NDArray[np.int64]  # (E + 1,)
     log_aim: NDArray[np.float64]  # (E,)
+    log_collapse_aim: NDArray[np.float64]  # (E,) tets' collapse aim with the margin, -inf others
+    collapse_aim: NDArray[np.float64]  # (E,) without the margin, 0 for other solids
     log_volume: NDArray[np.float64]  # (E,) log of the reference volume
     volume_band: NDArray[np.float64]  # (E,) allowed |log(v / v0)|, inf for none
     volume_weight: float
@@ -370,6 +399,7 @@ class _Problem:
             self.corners,
             self.elem_ptr,
             self.log_aim,
+            self.log_collapse_aim,
             self.log_volume,
             self.volume_band,
             self.volume_weight,
@@ -389,6 +419,7 @@ def _build_problem(
     is_free = np.zeros(n_nodes, dtype=bool)
     is_free[free] = True
     corners, counts, jac_solid, quads, jac_quad, ref_volume = [], [], [], [], [], []
+    collapse_solid = []
     faces, f_aspect, f_warp, f_skew = [], [], [], []
     for etype, _block, conn, rows in _blocks_touching(blocks, is_free):
 
@@ -405,6 +436,7 @@ def _build_problem(
             corners.append(conn[rows][:, triples].reshape(-1, 4))
             counts.append(np.full(len(rows), len(triples)))
             jac_solid.append(jac)
+            collapse_solid.append(aim("tet_collapse", 0.0))  # other solids: no collapse aim
             ref = aims.volume.get(etype)
             ref_volume.append(np.full(len(rows), np.nan) if ref is None else ref[rows])
         local = _FACES[etype]
@@ -433,6 +465,7 @@ def _build_problem(
             return np.log(np.clip(goal + options.margin, 0.0, 1.0) * (goal > 0))
 
     jac_s, jac_q = cat(jac_solid), cat(jac_quad)
+    collapse = cat(collapse_solid)
     ref = cat(ref_volume)
     limited = (ref > 0) & np.isfinite(aims.volume_change)
     band = np.where(limited, np.log1p(aims.volume_change) if limited.any() else 0.0, np.inf)
@@ -458,6 +491,8 @@ def _build_problem(
         corners=local(corners_g),
         elem_ptr=np.concatenate([[0], np.cumsum(cat(counts, dtype=np.int64))]).astype(np.int64),
         log_aim=log_aim(jac_s),
+        log_collapse_aim=log_aim(collapse),
+        collapse_aim=collapse,
         log_volume=np.log(np.where(limited, ref, 1.0)),
         volume_band=band,
         volume_weight=float(options.volume_weight),
@@ -493,11 +528,28 @@ def _element_jacobians(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float
     return np.concatenate(out) if out else np.zeros(0)
 
 
+def _tet_collapses(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Tet collapse of the problem's tetrahedra (its one-corner solids) at local ``x``, in
+    their order, with their aims (``pr.collapse_aim``) alongside."""
+    tets = np.flatnonzero(np.diff(pr.elem_ptr) == 1)
+    c = pr.corners[pr.elem_ptr[tets]]
+    p = x[c]
+    d = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+    largest = np.zeros(len(tets))
+    for i0, i1, i2 in TET_OPPOSITE:
+        n = np.cross(p[:, i1] - p[:, i0], p[:, i2] - p[:, i0])
+        largest = np.maximum(largest, np.einsum("ij,ij->i", n, n))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_c = np.log(d) - 0.75 * np.log(largest) + LOG_COLLAPSE_SCALE
+    return np.where(d > 0, np.exp(log_c), 0.0)
+
+
 def corner_ratio_penalty_numpy(
     x: NDArray[np.float64],
     corners: NDArray[np.int64],
     elem_ptr: NDArray[np.int64],
     log_aim: NDArray[np.float64],
+    log_collapse_aim: NDArray[np.float64],
     log_volume: NDArray[np.float64],
     volume_band: NDArray[np.float64],
     volume_weight: float,
@@ -530,6 +582,20 @@ def corner_ratio_penalty_numpy(
         excess = np.maximum(np.abs(change) - volume_band[elems], 0.0)
         total += volume_weight * float(np.sum(excess * excess))
         s = s + np.repeat(2.0 * volume_weight * excess * np.sign(change) / (k * mean), k)
+        if k == 1:  # tetrahedra: the collapse at each node, h_i / sqrt(A_i)
+            p = x[c]  # (m, 4, 3)
+            for i0, i1, i2 in TET_OPPOSITE:
+                u_, v_ = p[:, i1] - p[:, i0], p[:, i2] - p[:, i0]
+                n = np.cross(u_, v_)
+                nn = np.einsum("ij,ij->i", n, n)
+                log_c = np.log(d) - 0.75 * np.log(nn) + LOG_COLLAPSE_SCALE
+                short = np.maximum(log_collapse_aim[elems] - log_c, 0.0)
+                total += float(np.sum(short * short))
+                s = s - 2.0 * short / d
+                w = (3.0 * short / nn)[:, None]
+                gu, gv = w * np.cross(v_, n), w * np.cross(n, u_)
+                for col, g in ((i1, gu), (i2, gv), (i0, -(gu + gv))):
+                    np.add.at(grad, c[:, col], g)
         s = s[:, None]
         ga, gb, ge = s * np.cross(b, e), s * np.cross(e, a), s * np.cross(a, b)
         for col, g in ((1, ga), (2, gb), (3, ge), (0, -(ga + gb + ge))):
@@ -581,6 +647,7 @@ class _SplitPenalty:
                 pr.corners[c0:c1],
                 pr.elem_ptr[e0 : e1 + 1] - c0,
                 pr.log_aim[e0:e1],
+                pr.log_collapse_aim[e0:e1],
                 pr.log_volume[e0:e1],
                 pr.volume_band[e0:e1],
                 pr.volume_weight,
@@ -807,6 +874,7 @@ def optimise_quality(
     if len(pr0.free) == 0:
         return x_all, QualityOptimisationReport(seconds=time.perf_counter() - t0)
     j_before = _element_jacobians(pr0, x_all[pr0.nodes])
+    c_before = _tet_collapses(pr0, x_all[pr0.nodes])
     if np.any(j_before <= 0):
         raise ValueError("optimise_quality needs an untangled mesh: some elements are inverted")
     stage = whole
@@ -897,6 +965,8 @@ def optimise_quality(
             stage = narrowed(stage, settling=True)
             run_round(stage)
     j_after = _element_jacobians(pr0, x_all[pr0.nodes])
+    c_after = _tet_collapses(pr0, x_all[pr0.nodes])
+    c_aim = pr0.collapse_aim[np.diff(pr0.elem_ptr) == 1]
     moved = x_all[pr0.nodes[pr0.free]] - start_all[pr0.nodes[pr0.free]]
     return x_all, QualityOptimisationReport(
         free_nodes=len(pr0.free),
@@ -905,6 +975,10 @@ def optimise_quality(
         below_aim_after=int(np.sum(j_after < pr0.jacobian_aim)),
         worst_before=float(j_before.min(initial=np.inf)),
         worst_after=float(j_after.min(initial=np.inf)),
+        collapse_below_aim_before=int(np.sum(c_before < c_aim)),
+        collapse_below_aim_after=int(np.sum(c_after < c_aim)),
+        collapse_worst_before=float(c_before.min()) if len(c_before) else float("nan"),
+        collapse_worst_after=float(c_after.min()) if len(c_after) else float("nan"),
         rounds=rounds,
         iterations=iterations,
         evaluations=evaluations,

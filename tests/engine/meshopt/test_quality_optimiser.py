@@ -51,13 +51,15 @@ def uniform_aims(blocks, jacobian, aspect=np.inf, warpage=180.0, skew=90.0) -> Q
     def per(value):
         return {etype: np.full(len(b), float(value)) for etype, b in blocks.items()}
 
-    return QualityAims(per(jacobian), per(aspect), per(warpage), per(skew))
+    return QualityAims(
+        per(jacobian), per(aspect), per(warpage), per(skew), tet_collapse=per(jacobian)
+    )
 
 
 def corner_args(pr):
     """The corner penalty's arguments after the coordinates (compiled and NumPy orders)."""
     compiled = pr.corner_args()
-    reference = (*compiled[:6], pr.quads, pr.quad_log_aim)
+    reference = (*compiled[:7], pr.quads, pr.quad_log_aim)
     return compiled, reference
 
 
@@ -152,25 +154,64 @@ def test_penalties_vanish_exactly_inside_the_aims(seed):
         m: {etype: q[etype].metric(m).copy() for etype in blocks}
         for m in ("jacobian", "aspect", "warpage", "skew")
     }
+    measured["tet_collapse"] = {"tet4": q["tet4"].tet_collapse.copy()}
+    margin = QualityOptions().margin
     free = np.arange(len(coords))
     loose = QualityAims(
-        {e: v - 1e-6 - QualityOptions().margin for e, v in measured["jacobian"].items()},
+        {e: v - 1e-6 - margin for e, v in measured["jacobian"].items()},
         {e: v + 1e-6 for e, v in measured["aspect"].items()},
         {e: v + 1e-6 for e, v in measured["warpage"].items()},
         {e: v + 1e-6 for e, v in measured["skew"].items()},
+        tet_collapse={"tet4": measured["tet_collapse"]["tet4"] - 1e-6 - margin},
     )
     pr = _build_problem(blocks, len(coords), free, loose, QualityOptions())
     assert total_penalty(pr, coords[pr.nodes])[0] == 0.0
-    for metric, sign in (("jacobian", +1), ("aspect", -1), ("warpage", -1), ("skew", -1)):
+    for metric, sign in (
+        ("jacobian", +1),
+        ("aspect", -1),
+        ("warpage", -1),
+        ("skew", -1),
+        ("tet_collapse", +1),
+    ):
         values = {e: v.copy() for e, v in getattr(loose, metric).items()}
-        bumped = "hex8"
-        if metric == "jacobian":
-            values[bumped] = measured[metric][bumped] + 1e-3 - QualityOptions().margin
+        bumped = "tet4" if metric == "tet_collapse" else "hex8"
+        if metric in ("jacobian", "tet_collapse"):
+            values[bumped] = measured[metric][bumped] + 1e-3 - margin
         else:
             values[bumped] = measured[metric][bumped] + sign * 1e-3
         strict = QualityAims(**{**loose.__dict__, metric: values})
         pr = _build_problem(blocks, len(coords), free, strict, QualityOptions())
         assert total_penalty(pr, coords[pr.nodes])[0] > 0.0, metric
+
+
+def test_a_sliver_with_fair_faces_is_lifted_to_its_collapse_aim():
+    """A sliver (four nearly coplanar corners, no short edge) has faces within any aspect aim
+    and its single corner Jacobian is 1: only the tet collapse term sees it."""
+    height = 0.02
+    coords = np.array([(1.0, 0, 0), (-1.0, 0, 0), (0, -1.0, height), (0, 1.0, height)])
+    blocks = {"tet4": ElementBlock("tet4", np.array([1]), np.array([1]), np.arange(4)[None, :])}
+    q = compute_quality(coords, blocks)["tet4"]
+    assert q.tet_collapse[0] < 0.05 and q.aspect[0] < 2.0  # a sliver with fair faces
+    aims = quality_aims(compute_quality(coords, blocks), blocks)
+    aims = QualityAims(**{**aims.__dict__, "tet_collapse": {"tet4": np.array([0.3])}})
+    out, report = optimise_quality(coords, blocks, np.array([3]), aims)
+    lifted = compute_quality(out, blocks)["tet4"].tet_collapse[0]
+    assert lifted >= 0.3, lifted
+    assert report.collapse_worst_before == pytest.approx(q.tet_collapse[0])
+    assert report.collapse_worst_after == pytest.approx(lifted)
+    assert (report.collapse_below_aim_before, report.collapse_below_aim_after) == (1, 0)
+    np.testing.assert_array_equal(out[:3], coords[:3])
+
+
+def test_quality_aims_ask_tets_for_their_initial_collapse_up_to_the_warn_level():
+    coords = np.array([(1.0, 0, 0), (-1.0, 0, 0), (0, -1.0, 0.05), (0, 1.0, 0.05)])
+    coords = np.vstack([coords, coords * [1, 1, 20] + [5, 0, 0]])  # a sliver and a fair tet
+    blocks = {"tet4": ElementBlock("tet4", np.array([1, 2]), np.array([1, 1]),
+                                   np.arange(8).reshape(2, 4))}  # fmt: skip
+    q = compute_quality(coords, blocks)["tet4"]
+    aims = quality_aims(compute_quality(coords, blocks), blocks)
+    assert q.tet_collapse[0] < 0.2 < q.tet_collapse[1]
+    np.testing.assert_allclose(aims.tet_collapse["tet4"], [q.tet_collapse[0], 0.2])
 
 
 # ---------------------------------------------------------------------- aims and region
