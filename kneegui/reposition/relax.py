@@ -13,12 +13,15 @@ the bones (and the tissue attached to them) held where the kinematics put them:
 - the element geometry: every soft solid's corner tetrahedra (:func:`corner_tetrahedra`), and
   for shells lying on solid faces (skin, capsule, tendon) tetrahedra to a virtual apex inside the
   solid (:func:`shell_face_tetrahedra`);
-- bone contact: a soft-tissue node near a bone is kept on the outside of the bone's tangent plane
-  at its closest surface point (a penalty whose force stops growing 1 mm deep in the energy, a
-  constraint in the quality optimisation), with the planes recomputed from the bone surfaces
-  between rounds, so tissue slides along a condyle instead of entering it;
+- bone contact: a soft-tissue node near a bone is kept on the outside of a plane through its
+  closest surface point, across the direction in which the distance grows (a penalty whose
+  force stops growing 1 mm deep in the energy, a constraint in the quality optimisation), with
+  the planes recomputed from the bone surfaces between rounds, so tissue slides along a condyle
+  instead of entering it;
 - the skin: sliding in its tangent planes during the untangling (``RelaxOptions.slide_skin``),
-  and its contours kept in order in the quality optimisation (``contour_margin``).
+  and its contours kept in order (``contour_margin``) in the untangling as well as in the
+  quality optimisation, so that the energy's shape terms, not the optimiser's penalties, carry
+  back the contours the mapping crossed.
 
 Element count, node ids and connectivity never change; only the free nodes move.
 """
@@ -210,6 +213,26 @@ def _free_midside_nodes(
     keep = requested[mid] & is_free[ends].any(axis=1)
     mid, first = np.unique(mid[keep], return_index=True)
     return mid.astype(np.int64), ends[keep][first].astype(np.int64)
+
+
+def _distance_gradient(
+    p: NDArray[np.float64],
+    closest: NDArray[np.float64],
+    depth: NDArray[np.float64],
+    normal: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """The outward unit direction in which the signed distance grows fastest at ``p``: from
+    the closest surface point to the point (outside) or from the point to it (inside); the
+    surface's own ``normal`` where the point is on the surface. A contact plane with this
+    normal through the closest point measures the true depth: with the surface's
+    pseudo-normal at an edge or vertex, a node 0.66 mm inside the femur (the hex leg built at
+    0 deg, posed to 90 deg) sat exactly on its plane."""
+    offset = p - closest
+    length = np.linalg.norm(offset, axis=1)
+    on_surface = length <= 1e-9 * (1.0 + np.abs(p).max(initial=0.0))
+    direction = offset / np.where(on_surface, 1.0, length)[:, None]
+    direction *= np.where(depth < 0.0, -1.0, 1.0)[:, None]
+    return np.where(on_surface[:, None], normal, direction)
 
 
 class ElasticRelaxation:
@@ -486,6 +509,7 @@ class ElasticRelaxation:
                 continue
             local = tr.inverse().apply(p)
             depth, point, normal, _ = surface.query(local)
+            normal = _distance_gradient(local, point, depth, normal)
             slot = np.searchsorted(self.contact_nodes, nodes)
             floor = self._rest_floor[name][slot].copy()
             if nb is not None and nb.nnz:
@@ -575,9 +599,11 @@ class ElasticRelaxation:
         progress: ProgressCallback,
         cancel: Callable[[], bool],
     ) -> tuple[NDArray[np.float64], RelaxReport, bool]:
-        """The chain's first stage on the degraded region: the energy's rounds (and restarts),
-        ending as soon as nothing is inverted when ``stop_when_untangled``. Returns the new
-        coordinates, the report and whether the quality optimisation may follow."""
+        """The chain's first stage on the degraded region (seeded also by skin nodes out of
+        contour order): the energy's rounds (and restarts), ending when ``stop_when_untangled``
+        as soon as nothing is inverted and the contact and contour-order planes have reached
+        their final stiffness. Returns the new coordinates, the report and whether the quality
+        optimisation may follow."""
         x = np.array(coords, dtype=np.float64, copy=True)
         report = RelaxReport()
         if len(self.free) == 0 or len(self.tets) == 0:
@@ -589,6 +615,9 @@ class ElasticRelaxation:
             report.deepest_penetration = float(max(0.0, -depth.min()))
             penetrating = self.contact_nodes[depth < -self.options.penetration_tolerance]
         t = time.perf_counter()
+        if self.contour_order is not None:
+            crossing = self.contour_order.crossing(x)
+            penetrating = crossing if penetrating is None else np.union1d(penetrating, crossing)
         free = self.degraded_region(x, penetrating)
         report.region_seconds = time.perf_counter() - t
         report.free_nodes = len(free)
@@ -642,6 +671,9 @@ class ElasticRelaxation:
         planes = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
         sliding = self._sliding_rows(x, sub)
         released = np.zeros(0, dtype=np.int64)
+        order = self.contour_order
+        is_sub_free = np.zeros(self.n_nodes, dtype=bool)
+        is_sub_free[sub.nodes[sub.free]] = True
         for attempt in range(1 + opt.restarts):
             if attempt:
                 if d_min > 0:
@@ -665,15 +697,24 @@ class ElasticRelaxation:
             for rnd in range(opt.max_rounds):
                 if should_cancel():
                     raise Cancelled("relaxation cancelled")
-                if len(contact_global):
+                if len(contact_global) or order is not None:
                     x[sub.nodes] = xl
-                    which, c_normals, c_offsets, _ = self._contact_planes(
-                        x, contact_global, transforms
+                    parts = []
+                    if len(contact_global):
+                        which, c_normals, c_offsets, _ = self._contact_planes(
+                            x, contact_global, transforms
+                        )
+                        parts.append((contact_global[which], c_normals, c_offsets))
+                        report.contact_nodes = len(np.unique(contact_global[which]))
+                    if order is not None:
+                        o_nodes, o_normals, o_offsets = order.constraints(x)
+                        keep = is_sub_free[o_nodes]
+                        parts.append((o_nodes[keep], o_normals[keep], o_offsets[keep]))
+                    c_global, c_normals, c_offsets = (
+                        np.concatenate(p) for p in zip(*parts, strict=True)
                     )
-                    c_global = contact_global[which]
                     c_local = np.searchsorted(sub.nodes, c_global)
                     planes = (c_local, c_normals, c_offsets, stiffness * sub.diagonal[c_local])
-                    report.contact_nodes = len(np.unique(c_global))
                 fun = penalised_objective(
                     sub, xl, scale, eps, planes, opt.contact_force_depth, sliding
                 )
@@ -694,7 +735,7 @@ class ElasticRelaxation:
                 stiff_enough = stiffness >= opt.contact_stiffness or not len(planes[0])
                 if d_min > 0 and stiff_enough and (decrease < opt.tolerance or rnd_untangled):
                     break
-                if d_min > 0 and optimise_next:
+                if d_min > 0 and optimise_next and (order is None or stiff_enough):
                     break  # untangled: the quality optimisation takes it from here
                 rnd_untangled = d_min > 0 and eps <= 1e-9
                 if d_min > 0:
