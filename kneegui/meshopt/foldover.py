@@ -31,7 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from kneegui.meshopt.foldover_kernel import foldover_free_energy
+from kneegui.meshopt.foldover_kernel import foldover_free_energy, quad_barrier_energy
 from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
 from kneegui.meshopt.quality_optimiser import QualityOptimisationReport
 from kneegui.quality.kernels import corner_determinants
@@ -328,7 +328,13 @@ class FoldoverEnergy:
             energy = self._energy_in_parts(xa, eps, grad, det)
         if self.virtual_t is not None:
             grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
-        return self._add_shells(x, eps, float(energy), grad, det)
+        if len(self.quads) == 0:
+            return float(energy), grad, det
+        ratios = np.empty(4 * len(self.quads))
+        energy += quad_barrier_energy(
+            np.ascontiguousarray(x), self.quads, self.quad_rest, self.quad_weight, eps, grad, ratios
+        )
+        return float(energy), grad, np.concatenate([det, ratios])
 
     def _energy_in_parts(self, xa, eps, grad, det) -> float:
         """The compiled energy over fixed parts of the corners, each into its own gradient
