@@ -58,7 +58,7 @@ from kneegui.meshopt.quality_optimiser import (
 from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
 from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
-from kneegui.reposition.contact import BoneSurfaceDistance
+from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
 from kneegui.topology import SOLID_FACES
 
@@ -374,9 +374,11 @@ class ElasticRelaxation:
         # each contact node keeps at least its rest clearance from each bone, up to
         # contact_clearance (tissue lying on a bone at rest may stay on it)
         self._rest_floor: dict[str, NDArray[np.float64]] = {}
+        self._contact_memo: dict[str, DistanceMemo] = {}
         for name, surface in self.bones.items():
             depth = surface.query(self.rest[self.contact_nodes])[0]
             self._rest_floor[name] = np.clip(depth, 0.0, self.options.contact_clearance)
+            self._contact_memo[name] = DistanceMemo(surface, self.rest[self.contact_nodes], depth)
         quads = np.zeros((0, 4), dtype=np.int64) if quads is None else np.asarray(quads)
         if len(quads):
             rest_det = corner_determinants(self.rest[quads], "quad4")
@@ -393,6 +395,14 @@ class ElasticRelaxation:
             nb = self._adjacency[self.contact_nodes][:, attached].tocsr()
             used = np.unique(nb.indices)
             self._attached_nodes = attached[used]
+            self._attached_memo = {
+                name: DistanceMemo(
+                    surface,
+                    self.rest[self._attached_nodes],
+                    surface.query(self.rest[self._attached_nodes])[0],
+                )
+                for name, surface in self.bones.items()
+            }
             self._attached_nb = sp.csr_matrix(
                 (np.ones(nb.nnz), np.searchsorted(used, nb.indices), nb.indptr),
                 shape=(len(self.contact_nodes), len(used)),
@@ -495,7 +505,9 @@ class ElasticRelaxation:
         transforms: Mapping[str, RigidTransform],
     ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Constraints ``n . x_node >= offset`` for the given nodes near a bone, and each
-        node's smallest margin ``depth - allowed depth`` over the bones (< 0: too deep)."""
+        node's smallest margin ``depth - allowed depth`` over the bones (< 0: too deep; a lower
+        bound where it is more than the contact band: those nodes are not measured again,
+        :class:`~kneegui.reposition.contact.DistanceMemo`)."""
         clearance, band = self.options.contact_clearance, self.options.contact_band
         out_nodes, normals, offsets = [], [], []
         nearest = np.full(len(nodes), np.inf)
@@ -503,18 +515,23 @@ class ElasticRelaxation:
         nb = None
         if self._attached_nb is not None:
             nb = self._attached_nb[np.searchsorted(self.contact_nodes, nodes)].tocsr()
-        for name, surface in self.bones.items():
+        for name in self.bones:
             tr = transforms.get(name)
             if tr is None:
                 continue
             local = tr.inverse().apply(p)
-            depth, point, normal, _ = surface.query(local)
-            normal = _distance_gradient(local, point, depth, normal)
             slot = np.searchsorted(self.contact_nodes, nodes)
+            depth, point, normal, measured = self._contact_memo[name].query(slot, local, band)
+            normal[measured] = _distance_gradient(
+                local[measured], point[measured], depth[measured], normal[measured]
+            )
             floor = self._rest_floor[name][slot].copy()
             if nb is not None and nb.nnz:
                 att = tr.inverse().apply(x[self._attached_nodes])
-                att_depth = np.minimum(surface.query(att)[0], clearance)
+                every = np.arange(len(att))
+                att_depth = np.minimum(
+                    self._attached_memo[name].query(every, att, clearance)[0], clearance
+                )
                 rows = np.repeat(np.arange(len(nodes)), np.diff(nb.indptr))
                 np.minimum.at(floor, rows, att_depth[nb.indices])
             nearest = np.minimum(nearest, depth - floor)

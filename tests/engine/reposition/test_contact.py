@@ -203,3 +203,60 @@ def test_no_points_queried_gives_empty_answers():
     )
     assert distance.shape == (0,) and point.shape == normal.shape == (0, 3)
     assert node_distance.shape == (0,)
+
+
+def test_the_distance_memo_skips_only_points_provably_beyond_its_threshold():
+    """Points measured once and moved since are measured again unless the distance, less
+    how far they moved, is still beyond the threshold; what is measured is the full query's
+    answer, and every skipped point's bound is at most its true distance."""
+    from kneegui.reposition.contact import DistanceMemo
+
+    surface = BoneSurfaceDistance(CUBE[TRIANGLES])
+    rng = np.random.default_rng(2)
+    start = rng.uniform(-15.0, 25.0, (400, 3))
+    memo = DistanceMemo(surface, start, surface.query(start)[0])
+    rows = np.arange(len(start))
+    band = 3.0
+    for step in range(4):
+        moved = start + rng.normal(0.0, 1.0 + step, start.shape)
+        depth, point, normal, measured = memo.query(rows, moved, band)
+        full_depth, full_point, full_normal, _ = surface.query(moved)
+        assert 0 < measured.sum() < len(moved)
+        np.testing.assert_array_equal(depth[measured], full_depth[measured])
+        np.testing.assert_array_equal(point[measured], full_point[measured])
+        np.testing.assert_array_equal(normal[measured], full_normal[measured])
+        skipped = ~measured
+        assert np.all(depth[skipped] > band)
+        assert np.all(depth[skipped] <= full_depth[skipped] + 1e-12)
+        assert np.all(np.isnan(point[skipped]))
+        start = moved
+
+
+def test_the_contact_planes_are_the_same_with_the_memo(small_repositioner):
+    """The memo only skips nodes the full query would put beyond the contact band (or, for
+    attached nodes, beyond the clearance), so every call's planes and penetrations match those
+    of a relaxation that measures every node, while the nodes drift as a solver moves them."""
+    rep = small_repositioner
+    bone = rep.bone_pose(90.0)
+    coords = rep.pose(90.0)
+    memo, full = rep._elastic_relaxation(), rep._elastic_relaxation()
+    nodes = memo.contact_nodes
+    rng = np.random.default_rng(4)
+    skipped = 0
+    for _ in range(4):
+        coords = coords + rng.normal(0.0, 0.3, coords.shape)
+        for name in full.bones:  # forget everything: every node measured
+            full._contact_memo[name].depth[:] = np.nan
+            if full._attached_nb is not None:
+                full._attached_memo[name].depth[:] = np.nan
+        before = {n: m.where.copy() for n, m in memo._contact_memo.items()}
+        got = memo._contact_planes(coords, nodes, bone.transforms)
+        want = full._contact_planes(coords, nodes, bone.transforms)
+        for a, b in zip(got[:3], want[:3], strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(got[3] < 0, want[3] < 0)
+        np.testing.assert_array_equal(np.minimum(got[3], 0), np.minimum(want[3], 0))
+        skipped += sum(
+            int(np.sum(np.all(m.where == before[n], axis=1))) for n, m in memo._contact_memo.items()
+        )
+    assert skipped > 0  # the memo did spare queries
