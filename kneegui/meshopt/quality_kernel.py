@@ -304,19 +304,38 @@ def _fold_penalty(x, grad, a0, a1, a2, b0, b1, b2, aim, cos_aim, weight):  # pra
     return weight * excess * excess
 
 
+def face_aims(log_aspect_aim: np.ndarray, warp_aim: np.ndarray, skew_aim: np.ndarray) -> np.ndarray:
+    """(F, 6) per-face aims of :func:`face_shape_penalty`: the log aspect aim, the squared
+    edge-length ratio it allows, the warpage aim (radians) and its cosine, the skew aim
+    (radians) and its sine. Worked out once per problem: the cosine and sine per face and
+    evaluation were half of the kernel's time."""
+    return np.ascontiguousarray(
+        np.column_stack(
+            [
+                log_aspect_aim,
+                np.exp(2.0 * log_aspect_aim),
+                warp_aim,
+                np.cos(warp_aim),
+                skew_aim,
+                np.sin(skew_aim),
+            ]
+        ),
+        dtype=np.float64,
+    )
+
+
 @njit(cache=True, nogil=True)
-def face_shape_penalty(  # pragma: no cover - compiled
-    x, faces, log_aspect_aim, warp_aim, skew_aim, weights, grad
-):
+def face_shape_penalty(x, faces, aims, weights, grad):  # pragma: no cover - compiled
     """Penalties on quad faces (F, 4) and triangle faces (F, 4 with -1 last) whose aspect
     ratio, warpage or skew exceed their aims (QUALITY.md definitions); adds to ``grad``.
 
-    ``weights`` = (aspect, warpage, skew); angles in radians. Aspect:
+    ``aims`` (F, 6) from :func:`face_aims`; ``weights`` = (aspect, warpage, skew). Aspect:
     ``max(0, log(l_i / l_j) - log aim)^2`` over the face's edge pairs; warpage:
     ``max(0, theta - aim)^2`` for the angle between the triangle normals of both diagonal
     splits; skew: ``max(0, |theta - pi/2| - aim)^2`` for the angle between the mid-side lines.
-    Each term is first tested cheaply (squared lengths, cosines): the logarithms, angles and
-    gradients are only worked out for the faces that miss an aim.
+    Each term is first tested cheaply (squared lengths, cosines, against limits worked out
+    once in :func:`face_aims`): the logarithms, angles and gradients are only worked out for
+    the faces that miss an aim.
     """
     total = 0.0
     sq = np.empty(4)
@@ -337,8 +356,8 @@ def face_shape_penalty(  # pragma: no cover - compiled
                 return math.inf
             lo = min(lo, sq[i])
             hi = max(hi, sq[i])
-        aim = log_aspect_aim[f]
-        if w_aspect > 0.0 and 0.5 * math.log(hi / lo) > aim:
+        aim = aims[f, 0]
+        if w_aspect > 0.0 and hi > aims[f, 1] * lo:
             for i in range(k):
                 g_log[i] = 0.0
             for i in range(k):
@@ -371,8 +390,8 @@ def face_shape_penalty(  # pragma: no cover - compiled
         p3 = faces[f, 3]
         if w_warp > 0.0:
             # split along 0-2: (0, 1, 2) and (0, 2, 3); along 1-3: (0, 1, 3) and (1, 2, 3)
-            aim = warp_aim[f]
-            cos_aim = math.cos(aim)
+            aim = aims[f, 2]
+            cos_aim = aims[f, 3]
             total += _fold_penalty(x, grad, p0, p1, p2, p0, p2, p3, aim, cos_aim, w_warp)
             total += _fold_penalty(x, grad, p0, p1, p3, p1, p2, p3, aim, cos_aim, w_warp)
         if w_skew > 0.0:
@@ -385,11 +404,11 @@ def face_shape_penalty(  # pragma: no cover - compiled
             bz = x[p2, 2] - x[p1, 2] - x[p0, 2] + x[p3, 2]
             # cheap test first: |cos| of the angle between the lines against sin(aim)
             norms = math.sqrt((ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz))
-            if norms == 0.0 or abs(ax * bx + ay * by + az * bz) <= math.sin(skew_aim[f]) * norms:
+            if norms == 0.0 or abs(ax * bx + ay * by + az * bz) <= aims[f, 5] * norms:
                 continue
             theta, gax, gay, gaz, gbx, gby, gbz = _angle_gradients(ax, ay, az, bx, by, bz)
             half = 0.5 * math.pi
-            excess = abs(theta - half) - skew_aim[f]
+            excess = abs(theta - half) - aims[f, 4]
             if excess <= 0.0:
                 continue
             total += w_skew * excess * excess
