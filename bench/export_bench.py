@@ -180,8 +180,8 @@ def markdown(results: dict[str, Any]) -> list[str]:
         lines += [
             "",
             f"Machine: {machine.get('cpu')}, {machine.get('cores')} cores, "
-            f"{machine.get('memory_gb')} GB; load average at start {results.get('load', '?')} "
-            "(other processes shared the CPU).",
+            f"{machine.get('memory_gb')} GB; load average (1 / 5 / 15 min) at start "
+            f"{results.get('load', '?')}.",
         ]
     return [*lines, END]
 

@@ -213,8 +213,10 @@ def shortfall_region(
     misses : bool
         False: grow from ``seeds`` alone (no element is measured).
     shape_aims : bool
-        False: only the Jacobian and tet-collapse aims count (not aspect, warpage, skew and
-        volume).
+        False: only the aims of what the quality gate holds to the initial model count: the
+        corner Jacobian of every element and, of tetrahedra, their collapse and shape aims
+        (the gate checks a tet's collapse, dihedral angles, aspect and volume skew); not the
+        other elements' aspect, warpage and skew, nor any volume band.
 
     Returns
     -------
@@ -237,7 +239,8 @@ def shortfall_region(
         collapse_aim = aims.tet_collapse.get(etype)
         if collapse_aim is not None and q.tet_collapse is not None:
             miss |= q.tet_collapse < collapse_aim[rows]
-        for metric in ("aspect", "warpage", "skew") if shape_aims else ():
+        shape = shape_aims or etype in TET_TYPES
+        for metric in ("aspect", "warpage", "skew") if shape else ():
             limit = getattr(aims, metric).get(etype)
             if limit is not None:
                 miss |= q.metric(metric) > limit[rows]
@@ -295,16 +298,19 @@ class QualityOptions:
         round over the whole stage and at most this many settling rounds again.
     active_rings, active_shrink : int, float
         After the first round, each round moves only the free nodes within ``active_rings``
-        elements of an element still below its Jacobian or tet-collapse aim (the measures the
-        gate holds to the initial model) or of a node past its constraint
-        (:func:`shortfall_region` without the shape aims), when they are at most
-        ``active_shrink`` of the nodes the round before moved (0 never narrows). The aspect,
-        warpage, skew and volume aims stay in the objective but do not keep nodes moving:
+        elements of an element still missing an aim the gate holds to the initial model (the
+        corner Jacobian; for tetrahedra also collapse and shape) or of a node past its
+        constraint (:func:`shortfall_region` without the shape aims), when they are at most
+        ``active_shrink`` of the nodes the round before moved (0 never narrows). The other
+        elements' aspect, warpage, skew and volume aims stay in the objective but do not keep
+        nodes moving:
         being soft, they miss by a little on thousands of elements (the 20k demo at 90 deg:
         about 2,300 hexes outside the volume band and 2,500 over their warpage aim in every
         round), so counting them kept all 7,294 nodes in all fifteen rounds, while the
         Jacobian misses fell from 471 after the first round to 9. Narrowed, the stage took
         5.4 s instead of 13.5 s with the same worst Jacobian and 95th-percentile volume change.
+        Tetrahedra keep their shape aims in the count: without them the coarse tet demo's
+        worst collapse at 90 deg fell from 0.106 to 0.102.
     """
 
     margin: float = 0.08
