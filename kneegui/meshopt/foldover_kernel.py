@@ -11,8 +11,23 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
+
+from kneegui.meshopt.quality_kernel import _cross_grad, _normal
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _regularised(det, eps):  # pragma: no cover - compiled
+    """Garanzha's regularised determinant ``chi`` and ``d chi / d det``, as
+    :func:`kneegui.meshopt.foldover.regularised_det` for one value."""
+    root = math.sqrt(eps * eps + det * det)
+    if det >= 0.0:
+        chi = 0.5 * (det + root)
+    else:
+        chi = 0.5 * eps * eps / (root - det)
+    if chi < 1e-300:
+        chi = 1e-300
+    return chi, 0.5 * (1.0 + det / root)
 
 
 @njit(cache=True, nogil=True)
@@ -74,14 +89,7 @@ def foldover_free_energy(xa, tets, g, w, theta, eps, grad, det_out):  # pragma: 
         f22 = j00 * j11 - j10 * j01
         det = j00 * f00 + j10 * f10 + j20 * f20
         det_out[c] = det
-        root = math.sqrt(eps * eps + det * det)
-        if det >= 0.0:
-            chi = 0.5 * (det + root)
-        else:
-            chi = 0.5 * eps * eps / (root - det)
-        if chi < 1e-300:
-            chi = 1e-300
-        dchi = 0.5 * (1.0 + det / root)
+        chi, dchi = _regularised(det, eps)
         frob = (
             j00 * j00
             + j01 * j01
@@ -148,80 +156,45 @@ def quad_barrier_energy(x, quads, rest, weight, eps, grad, ratios):  # pragma: n
     """
     n_quads = quads.shape[0]
     total = 0.0
-    px = np.empty(4)
-    py = np.empty(4)
-    pz = np.empty(4)
     for q in range(n_quads):
-        for k in range(4):
-            px[k] = x[quads[q, k], 0]
-            py[k] = x[quads[q, k], 1]
-            pz[k] = x[quads[q, k], 2]
-        ux = px[2] - px[0]
-        uy = py[2] - py[0]
-        uz = pz[2] - pz[0]
-        vx = px[3] - px[1]
-        vy = py[3] - py[1]
-        vz = pz[3] - pz[1]
+        q0, q1, q2, q3 = quads[q, 0], quads[q, 1], quads[q, 2], quads[q, 3]
+        # n = u x v over the diagonals u = x_2 - x_0, v = x_3 - x_1
+        ux = x[q2, 0] - x[q0, 0]
+        uy = x[q2, 1] - x[q0, 1]
+        uz = x[q2, 2] - x[q0, 2]
+        vx = x[q3, 0] - x[q1, 0]
+        vy = x[q3, 1] - x[q1, 1]
+        vz = x[q3, 2] - x[q1, 2]
         nx = uy * vz - uz * vy
         ny = uz * vx - ux * vz
         nz = ux * vy - uy * vx
         for i in range(4):
-            i1 = (i + 1) % 4
-            i3 = (i + 3) % 4
-            ax = px[i1] - px[i]
-            ay = py[i1] - py[i]
-            az = pz[i1] - pz[i]
-            bx = px[i3] - px[i]
-            by = py[i3] - py[i]
-            bz = pz[i3] - pz[i]
-            wx = ay * bz - az * by
-            wy = az * bx - ax * bz
-            wz = ax * by - ay * bx
+            n_i, n_1, n_3 = quads[q, i], quads[q, (i + 1) % 4], quads[q, (i + 3) % 4]
+            # w = (x_1 - x_i) x (x_3 - x_i), the corner's own normal
+            wx, wy, wz = _normal(x, n_i, n_1, n_3)
             r = (wx * nx + wy * ny + wz * nz) / rest[q, i]
             ratios[i * n_quads + q] = r
-            root = math.sqrt(eps * eps + r * r)
-            if r >= 0.0:
-                chi = 0.5 * (r + root)
-            else:
-                chi = 0.5 * eps * eps / (root - r)
-            if chi < 1e-300:
-                chi = 1e-300
-            dchi = 0.5 * (1.0 + r / root)
+            chi, dchi = _regularised(r, eps)
             total += weight * (r * r + 1.0) / chi
             dr = weight * (2.0 * r / chi - (r * r + 1.0) * dchi / (chi * chi)) / rest[q, i]
-            # d/da of (a x b) . n = b x n, d/db = n x a; d/du of (u x v) . w = v x w, d/dv = w x u
-            gax = (by * nz - bz * ny) * dr
-            gay = (bz * nx - bx * nz) * dr
-            gaz = (bx * ny - by * nx) * dr
-            gbx = (ny * az - nz * ay) * dr
-            gby = (nz * ax - nx * az) * dr
-            gbz = (nx * ay - ny * ax) * dr
+            # d(w . n) through w, then through n = u x v: d/du = v x w, d/dv = w x u
+            _cross_grad(x, grad, n_i, n_1, n_3, nx, ny, nz, dr)
             gux = (vy * wz - vz * wy) * dr
             guy = (vz * wx - vx * wz) * dr
             guz = (vx * wy - vy * wx) * dr
             gvx = (wy * uz - wz * uy) * dr
             gvy = (wz * ux - wx * uz) * dr
             gvz = (wx * uy - wy * ux) * dr
-            n_i, n_1, n_3 = quads[q, i], quads[q, i1], quads[q, i3]
-            grad[n_1, 0] += gax
-            grad[n_1, 1] += gay
-            grad[n_1, 2] += gaz
-            grad[n_3, 0] += gbx
-            grad[n_3, 1] += gby
-            grad[n_3, 2] += gbz
-            grad[n_i, 0] -= gax + gbx
-            grad[n_i, 1] -= gay + gby
-            grad[n_i, 2] -= gaz + gbz
-            grad[quads[q, 2], 0] += gux
-            grad[quads[q, 2], 1] += guy
-            grad[quads[q, 2], 2] += guz
-            grad[quads[q, 0], 0] -= gux
-            grad[quads[q, 0], 1] -= guy
-            grad[quads[q, 0], 2] -= guz
-            grad[quads[q, 3], 0] += gvx
-            grad[quads[q, 3], 1] += gvy
-            grad[quads[q, 3], 2] += gvz
-            grad[quads[q, 1], 0] -= gvx
-            grad[quads[q, 1], 1] -= gvy
-            grad[quads[q, 1], 2] -= gvz
+            grad[q2, 0] += gux
+            grad[q2, 1] += guy
+            grad[q2, 2] += guz
+            grad[q0, 0] -= gux
+            grad[q0, 1] -= guy
+            grad[q0, 2] -= guz
+            grad[q3, 0] += gvx
+            grad[q3, 1] += gvy
+            grad[q3, 2] += gvz
+            grad[q1, 0] -= gvx
+            grad[q1, 1] -= gvy
+            grad[q1, 2] -= gvz
     return total
