@@ -19,11 +19,11 @@ import pyvista as pv
 import vtk
 from numpy.typing import NDArray
 from PySide6.QtCore import QEvent, QObject, QPoint, QRect, QSize, Qt, QTimer
-from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
-from pyvistaqt import QtInteractor
+from PySide6.QtWidgets import QVBoxLayout, QWidget
 from vtk.util.numpy_support import vtk_to_numpy
 
 from app.colors import ROLE_COLOURS, UNASSIGNED_COLOUR
+from app.native_view import NativeInteractor, interactor_class
 from app.scene import PartSurface, build_grid, part_surfaces
 from app.workspace import HEATMAP_METRICS, Workspace
 
@@ -41,7 +41,11 @@ class Viewport(QWidget):
         self.ws = workspace
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
-        self.plotter = QtInteractor(self, auto_update=False)
+        view_class = interactor_class()
+        if view_class is NativeInteractor:
+            self.plotter = NativeInteractor(self)
+        else:  # pyvistaqt's QtInteractor (a QOpenGLWidget): Wayland, or asked for
+            self.plotter = view_class(self, auto_update=False)
         # flat background: a gradient costs ~10 ms a frame in software GL
         self.plotter.set_background("#2b3038")
         # one headlight instead of pyvista's five-light kit: ~40 % less render time in software
@@ -84,6 +88,7 @@ class Viewport(QWidget):
         self._axes_timer.timeout.connect(lambda: self.request("axes"))
         self._landmark_points: dict[str, tuple[pv.PolyData, object]] = {}
         self._shown_cells: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
+        self._selection: _SelectionRect | None = None
         self._picker = _PickFilter(self)
         self.plotter.installEventFilter(self._picker)
         ws = workspace
@@ -150,7 +155,8 @@ class Viewport(QWidget):
     def render(self, now: bool = False) -> None:
         """Schedule one repaint of the 3-D view (``now``: repaint before returning).
 
-        The interactor is a QOpenGLWidget whose paint renders the VTK scene, so asking Qt for a
+        The interactor's paint event renders the VTK scene (into its native window, or into the
+        framebuffer of pyvistaqt's ``QOpenGLWidget`` where that is used), so asking Qt for a
         repaint renders exactly once (``plotter.render()`` would render, then paint again).
         """
         if now:
@@ -616,6 +622,26 @@ class Viewport(QWidget):
         local = ids[np.argmin(np.linalg.norm(self._points[pid][ids] - point, axis=1))]
         return int(self.ws.model.node_ids[surf.model_index[local]])
 
+    def show_selection_rect(self, rect: QRect | None) -> None:
+        """Draw the box-selection rectangle (widget coordinates) over the scene, or hide it."""
+        if self._selection is None:
+            if rect is None:
+                return
+            self._selection = _SelectionRect(self._overlay)
+        if rect is None:
+            self._selection.place(None)
+        else:
+            (x0, y0), (x1, y1) = (
+                self._to_display(rect.topLeft()),
+                self._to_display(rect.bottomRight()),
+            )
+            self._selection.place([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
+        self.render()
+
+    def selection_rect_shown(self) -> bool:
+        """Whether the box-selection rectangle is drawn (a drag is in progress)."""
+        return self._selection is not None and bool(self._selection.actors[0].GetVisibility())
+
     def nodes_in_rect(self, rect: QRect) -> list[int]:
         """Node ids of the visible pickable surface nodes inside a widget rectangle."""
         pids = self.pickable_parts()
@@ -689,7 +715,6 @@ class _PickFilter(QObject):
         super().__init__(viewport)
         self.vp = viewport
         self._start: QPoint | None = None
-        self._band: QRubberBand | None = None
 
     def eventFilter(self, obj, event) -> bool:
         if not self.vp.ws.pick_target:
@@ -697,13 +722,11 @@ class _PickFilter(QObject):
         t = event.type()
         if t == QEvent.Type.MouseButtonPress and event.button() == Qt.MouseButton.LeftButton:
             self._start = event.position().toPoint()
-            if self._band is None:
-                self._band = QRubberBand(QRubberBand.Shape.Rectangle, self.vp.plotter)
-            self._band.setGeometry(QRect(self._start, QSize()))
-            self._band.show()
+            self.vp.show_selection_rect(QRect(self._start, QSize()))
             return True
         if t == QEvent.Type.MouseMove and self._start is not None:
-            self._band.setGeometry(QRect(self._start, event.position().toPoint()).normalized())
+            rect = QRect(self._start, event.position().toPoint()).normalized()
+            self.vp.show_selection_rect(rect)
             return True
         if (
             t == QEvent.Type.MouseButtonRelease
@@ -712,7 +735,7 @@ class _PickFilter(QObject):
         ):
             end = event.position().toPoint()
             start, self._start = self._start, None
-            self._band.hide()
+            self.vp.show_selection_rect(None)
             remove = bool(event.modifiers() & Qt.KeyboardModifier.ControlModifier)
             if (end - start).manhattanLength() <= PICK_CLICK_PIXELS:
                 node = self.vp.pick_at(end)
@@ -722,6 +745,51 @@ class _PickFilter(QObject):
             self.vp.apply_pick(ids, remove)
             return True
         return False
+
+
+class _SelectionRect:
+    """The box-selection rectangle, drawn by VTK in the overlay layer.
+
+    A Qt rubber band cannot be blended over the native GL window the scene is drawn in (it
+    would hide what is being selected), so the rectangle is a translucent 2-D actor instead.
+    """
+
+    def __init__(self, renderer: vtk.vtkRenderer):
+        self.points = vtk.vtkPoints()
+        self.points.SetNumberOfPoints(4)
+        fill = vtk.vtkPolyData()
+        fill.SetPoints(self.points)
+        quad = vtk.vtkCellArray()
+        quad.InsertNextCell(4, [0, 1, 2, 3])
+        fill.SetPolys(quad)
+        outline = vtk.vtkPolyData()
+        outline.SetPoints(self.points)
+        loop = vtk.vtkCellArray()
+        loop.InsertNextCell(5, [0, 1, 2, 3, 0])
+        outline.SetLines(loop)
+        self.actors = []
+        for data, opacity in ((fill, 0.25), (outline, 1.0)):
+            mapper = vtk.vtkPolyDataMapper2D()
+            mapper.SetInputData(data)
+            actor = vtk.vtkActor2D()
+            actor.SetMapper(mapper)
+            actor.GetProperty().SetColor(0.55, 0.75, 1.0)
+            actor.GetProperty().SetOpacity(opacity)
+            actor.GetProperty().SetLineWidth(1.5)
+            actor.SetVisibility(False)
+            actor.SetPickable(False)
+            renderer.AddViewProp(actor)
+            self.actors.append(actor)
+
+    def place(self, corners: list[tuple[float, float]] | None) -> None:
+        """Show the rectangle at four display-coordinate corners, or hide it (None)."""
+        for actor in self.actors:
+            actor.SetVisibility(corners is not None)
+        if corners is None:
+            return
+        for i, (x, y) in enumerate(corners):
+            self.points.SetPoint(i, x, y, 0.0)
+        self.points.Modified()
 
 
 def _polylines(chains: list[NDArray[np.float64]]) -> pv.PolyData:

@@ -37,13 +37,6 @@ def widget_point(viewport, xyz) -> QPoint:
     return QPoint(round(x / ratio), round((h - 1 - y) / ratio))
 
 
-def drag(widget, a: QPoint, b: QPoint) -> None:
-    QTest.mousePress(widget, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, a)
-    QTest.mouseMove(widget, (a + b) / 2)
-    QTest.mouseMove(widget, b)
-    QTest.mouseRelease(widget, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, b)
-
-
 def set_slider(window, qtbot, degrees: float) -> None:
     panel = window.flexion_panel
     panel.slider.setValue(round(degrees * 10))
@@ -65,6 +58,24 @@ def test_opens_the_demo_with_its_setup(demo_window):
     assert {"femur", "tibia", "patella", "ligament"} <= set(groups)
     assert ws.flexion == pytest.approx(ws.poser.initial_flexion)
     assert demo_window.flexion_panel.slider.isEnabled()
+
+
+def test_the_view_draws_into_a_native_window_qt_composes_without_opengl(demo_window):
+    from PySide6.QtGui import QGuiApplication
+    from PySide6.QtOpenGLWidgets import QOpenGLWidget
+
+    from app.native_view import NativeInteractor
+
+    if QGuiApplication.platformName() != "xcb":
+        pytest.skip("the native view is used on X11, Windows and macOS")
+    vp = demo_window.viewport
+    assert isinstance(vp.plotter, NativeInteractor)
+    assert vp.plotter.testAttribute(Qt.WidgetAttribute.WA_NativeWindow)
+    # no render-to-texture widget left: Qt paints the rest of the window with its raster engine
+    assert demo_window.findChildren(QOpenGLWidget) == []
+    before = vp.renders
+    vp.render(now=True)
+    assert vp.renders == before + 1  # one repaint renders the scene exactly once
 
 
 def test_role_edit_and_visibility_from_the_part_tree(demo_window, qtbot):
@@ -140,7 +151,14 @@ def test_pick_a_condyle_set_by_box_and_click(demo_window, qtbot):
     # box: drag a rectangle around where the set appears on screen
     pts = [widget_point(vp, ws.coords[i]) for i in ws.model.node_index(original)]
     xs, ys = [p.x() for p in pts], [p.y() for p in pts]
-    drag(vp.plotter, QPoint(min(xs) - 2, min(ys) - 2), QPoint(max(xs) + 2, max(ys) + 2))
+    a, b = QPoint(min(xs) - 2, min(ys) - 2), QPoint(max(xs) + 2, max(ys) + 2)
+    QTest.mousePress(vp.plotter, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, a)
+    QTest.mouseMove(vp.plotter, b)
+    # the rectangle is drawn in the scene while dragging (a Qt rubber band could not be
+    # blended over the native GL window), and gone after the release
+    assert vp.selection_rect_shown()
+    QTest.mouseRelease(vp.plotter, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, b)
+    assert not vp.selection_rect_shown()
     boxed = ws.condyle_ids("lateral_condyle")
     surface = vp.surfaces
     femur_surface = set(
