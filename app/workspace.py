@@ -58,6 +58,14 @@ HEATMAP_METRICS: dict[str, tuple[str, str, bool]] = {
 TET_HEATMAPS = ("tet_collapse", "dihedral_min", "dihedral_max", "vol_skew")
 
 
+def _measured(quality: QualityResult, metric: str) -> bool:
+    """Whether every type of ``quality`` was measured for the heat-map ``metric``."""
+    key = {"volume_change": "volume", "area_change": "volume"}.get(
+        metric, HEATMAP_METRICS[metric][1]
+    )
+    return all(q.measured is None or key in q.measured for q in quality.by_type.values())
+
+
 def heatmap_metrics(model: Model | None) -> list[str]:
     """The heat-map metrics that say something on ``model``, most telling first.
 
@@ -632,7 +640,9 @@ class Workspace(QObject):
             sel = cells[(cells >= start) & (cells < start + len(block))] - start
             if len(sel):
                 rows[etype] = sel
-        return lambda coords: (cells, evaluator.evaluate(coords, rows))
+        # a Jacobian heat-map needs the corner Jacobian alone (bit-identical, a third the cost)
+        jacobian_only = self.colour_mode == "quality" and self.metric == "jacobian"
+        return lambda coords: (cells, evaluator.evaluate(coords, rows, jacobian_only))
 
     def request_flexion(self, degrees: float) -> None:
         """Re-pose at ``degrees`` as soon as possible (slider drags).
@@ -784,7 +794,11 @@ class Workspace(QObject):
                     rows[etype] = sel
             if self._quality is not None:
                 q = self._quality
-            elif self._pose_quality is not None and self._pose_quality[0] is cells:
+            elif (
+                self._pose_quality is not None
+                and self._pose_quality[0] is cells
+                and _measured(self._pose_quality[1], metric)
+            ):
                 q = self._pose_quality[1]  # measured in the pose thread with this pose
             else:
                 q = self._evaluator.evaluate(self.coords, rows)

@@ -594,6 +594,27 @@ def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     return _result(acc, jac, jac.copy(), area)
 
 
+def corner_jacobian_only(p: Sequence[Vec], etype: str) -> Arr:
+    """The corner Jacobian alone, bit-identical to the ``jacobian_corner`` of the type's kernel.
+
+    The same operations on the same arrays as the kernels above, without the faces, Gauss
+    points and volume they also work out: what a heat-map of the Jacobian needs per frame.
+    Component-major ``p`` as for the kernels (corner nodes only).
+    """
+    if etype in ("hex8", "wedge6", "pyramid5"):
+        return ratio_of_determinants(corner_determinants_cm(p, etype))
+    if etype == "quad4":
+        n = _cross(p[2] - p[0], p[3] - p[1])
+        return ratio_of_determinants(corner_determinants_cm(p, "quad4", n))
+    if etype in ("tet4", "tet10"):
+        six_volume = _triple(p[1] - p[0], p[2] - p[0], p[3] - p[0])
+        return np.where(six_volume / 6.0 > 0.0, 1.0, -1.0)
+    if etype == "tri3":
+        area = 0.5 * np.sqrt(_sq(_cross(p[1] - p[0], p[2] - p[0])))
+        return np.where(area > 0.0, 1.0, -1.0)
+    raise ValueError(f"no corner Jacobian for element type {etype!r}")
+
+
 #: Kernel and the node columns it reads, per element type: the corner nodes, except for the
 #: 10-node tet, whose mid-side nodes the mid-side offsets read (its shape measures use the
 #: corner tetrahedron).

@@ -214,6 +214,33 @@ def test_pick_a_condyle_set_by_box_and_click(demo_window, qtbot):
     wait_idle(qtbot, ws)
 
 
+def test_live_jacobian_heatmap_is_the_full_evaluations_jacobian(demo_window, qtbot):
+    ws, vp = demo_window.ws, demo_window.viewport
+    rest_export = demo_window.rest_export_action.isChecked()
+    demo_window.set_rest_export(False)
+    try:
+        ws.set_metric("jacobian")
+        ws.set_colour_mode("quality")
+        vp.flush()
+        ws.request_flexion(75.0)  # a slider pose: measured in the pose thread
+        wait_idle(qtbot, ws)
+        assert ws.flexion == pytest.approx(75.0) and ws.view_kind == "live mapping"
+        cells, live = ws._pose_quality
+        assert cells is vp._shown_cells and len(cells)
+        assert all(q.measured == ("jacobian_corner",) for q in live.by_type.values())
+        full = compute_quality(ws.coords, ws.model.blocks)
+        for metric in ("jacobian", "aspect"):  # aspect: not in the live measure, measured anew
+            shown = ws.element_values(metric, cells)
+            expected = np.concatenate([full[e].metric(metric) for e in ws.model.blocks])
+            sel = cells[np.isfinite(shown[cells])]
+            assert len(sel) > 0.9 * len(cells)
+            np.testing.assert_array_equal(shown[sel], expected[sel])
+    finally:
+        ws.set_colour_mode("part")
+        demo_window.set_rest_export(rest_export)
+        wait_idle(qtbot, ws)
+
+
 def test_heatmaps_threshold_worst_list_and_cutaway(demo_window, qtbot):
     ws, vp, panel = demo_window.ws, demo_window.viewport, demo_window.quality_panel
     set_slider(demo_window, qtbot, 90.0)

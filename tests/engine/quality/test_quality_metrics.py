@@ -343,3 +343,36 @@ def test_beams_and_springs_are_not_measured():
     pts = np.zeros((2, 3))
     blocks = {"beam2": ElementBlock("beam2", [1], [1], [[0, 1]])}
     assert compute_quality(pts, blocks).n_elements == 0
+
+
+def test_jacobian_only_evaluation_is_bit_identical_to_the_full_one():
+    # the slider's Jacobian heat-map measures the corner Jacobian alone; its values must be the
+    # full evaluation's exactly, on fair, distorted and inverted elements of every type
+    from kneegui.topology import NODES_PER_ELEMENT
+
+    rng = np.random.default_rng(7)
+    n = 400
+    blocks, chunks, offset = {}, [], 0
+    for etype in ("hex8", "wedge6", "pyramid5", "tet4", "tet10", "quad4", "tri3"):
+        k = NODES_PER_ELEMENT[etype]
+        ref = rng.normal(size=(1, k, 3))
+        pts = ref + rng.normal(scale=0.6, size=(n, k, 3))  # some of them inverted
+        conn = offset + np.arange(n * k).reshape(n, k)
+        offset += n * k
+        chunks.append(pts.reshape(-1, 3))
+        blocks[etype] = ElementBlock(etype, np.arange(n), np.zeros(n), conn)
+    coords = np.concatenate(chunks)
+    evaluator = QualityEvaluator(blocks)
+    rows = {etype: np.sort(rng.choice(n, 150, replace=False)) for etype in blocks}
+    for subset in (None, rows):
+        full = evaluator.evaluate(coords, subset)
+        fast = evaluator.evaluate(coords, subset, jacobian_only=True)
+        assert list(fast) == list(full)
+        for etype in full:
+            np.testing.assert_array_equal(fast[etype].rows, full[etype].rows)
+            np.testing.assert_array_equal(fast[etype].jacobian_corner, full[etype].jacobian_corner)
+            np.testing.assert_array_equal(fast[etype].inverted, full[etype].inverted)
+            assert fast[etype].has("jacobian") and not fast[etype].has("aspect")
+            with pytest.raises(ValueError, match="not measured"):
+                fast[etype].metric("volume")
+    assert 0 < full.n_inverted < full.n_elements  # the cases include inverted elements
