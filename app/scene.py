@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from kneegui.io.vtu import vtk_cell_arrays
 from kneegui.model import Model
-from kneegui.topology import LINE_TYPES, SHELL_TYPES, block_offsets, boundary_faces
+from kneegui.topology import LINE_TYPES, SHELL_TYPES, block_offsets, boundary_faces, sorted_unique
 
 
 def build_grid(model: Model) -> pv.UnstructuredGrid:
@@ -87,7 +87,7 @@ def part_surfaces(model: Model) -> dict[int, PartSurface]:
         faces, owners, kinds = _boundary_faces(model, pid)
         if not faces:
             continue
-        used = np.unique(np.concatenate([f.reshape(-1) for f in faces]))
+        used = sorted_unique(np.concatenate([f.reshape(-1) for f in faces]))
         local = np.full(model.n_nodes, -1, dtype=np.int64)
         local[used] = np.arange(len(used))
         poly_faces, poly_lines, face_owner, line_owner = [], [], [], []

@@ -26,6 +26,7 @@ from app.colors import ROLE_COLOURS, UNASSIGNED_COLOUR
 from app.native_view import NativeInteractor, interactor_class
 from app.scene import PartSurface, build_grid, part_surfaces
 from app.workspace import HEATMAP_METRICS, Workspace
+from kneegui.topology import sorted_unique
 
 PICK_CLICK_PIXELS = 4
 #: Camera presets frame the visible geometry within this distance of the knee centre (mm).
@@ -226,7 +227,7 @@ class Viewport(QWidget):
     def _displayed_cells(self) -> NDArray[np.int64]:
         """Global cells that own a face of a visible part (the ones the heat-map shows)."""
         chunks = [s.cell_index for p, s in self.surfaces.items() if p not in self.ws.hidden_parts]
-        return np.unique(np.concatenate(chunks)) if chunks else np.zeros(0, dtype=np.int64)
+        return sorted_unique(np.concatenate(chunks)) if chunks else np.zeros(0, dtype=np.int64)
 
     def _colour_values(self, cells: NDArray[np.int64] | None) -> NDArray[np.float64]:
         ws = self.ws
@@ -647,7 +648,7 @@ class Viewport(QWidget):
         pids = self.pickable_parts()
         if not pids:
             return []
-        index = np.unique(np.concatenate([self.surfaces[p].model_index for p in pids]))
+        index = sorted_unique(np.concatenate([self.surfaces[p].model_index for p in pids]))
         xyz = self.ws.coords[index]
         ren = self.plotter.renderer
         w, h = self._display_size()

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kneegui.errors import KneeguiError
-from kneegui.topology import NODES_PER_ELEMENT
+from kneegui.topology import NODES_PER_ELEMENT, sorted_unique
 
 
 @dataclass(frozen=True)
@@ -256,7 +256,7 @@ class Model:
                 chunks.append(block.conn[mask].reshape(-1))
         if not chunks:
             return np.zeros(0, dtype=np.int64)
-        return np.unique(np.concatenate(chunks))
+        return sorted_unique(np.concatenate(chunks))
 
     def bounding_box(self) -> NDArray[np.float64]:
         """(2, 3) array: minimum and maximum corner of the node cloud."""

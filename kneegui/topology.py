@@ -28,7 +28,7 @@ from collections.abc import Iterable, Mapping
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 
 class ElementBlock(Protocol):
@@ -215,6 +215,28 @@ def _wanted(part_ids: Iterable[int] | None) -> NDArray[np.int64] | None:
     if part_ids is None:
         return None
     return np.array(sorted(set(int(p) for p in part_ids)), dtype=np.int64)
+
+
+# ---------------------------------------------------------------------- index arrays
+def sorted_unique(values: ArrayLike) -> NDArray:
+    """``np.unique(values)`` for integer (or bool) arrays, by sorting.
+
+    The same array as ``np.unique`` (flattened, sorted, duplicates removed). NumPy 2.3 and
+    newer find the unique values of a plain ``np.unique`` call with a hash table, which on
+    large index arrays is 2-14x slower than sorting (4M node indices: 1.6 s against 0.26 s);
+    the repositioner's and the relaxation's node and edge sets are such arrays. Other dtypes
+    go to ``np.unique`` (it treats NaN specially).
+    """
+    a = np.asarray(values)
+    if a.dtype.kind not in "iub":
+        return np.unique(a)
+    s = np.sort(a, axis=None)
+    if len(s) < 2:
+        return s
+    keep = np.empty(len(s), dtype=bool)
+    keep[0] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    return s[keep]
 
 
 # ---------------------------------------------------------------------- faces and corners

@@ -35,6 +35,7 @@ from kneegui.meshopt.foldover_kernel import foldover_free_energy, quad_barrier_e
 from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
 from kneegui.meshopt.quality_optimiser import QualityOptimisationReport
 from kneegui.quality.kernels import corner_determinants
+from kneegui.topology import sorted_unique
 
 
 def edge_matrices(x: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -268,9 +269,9 @@ class FoldoverEnergy:
     ):
         n = virtual.shape[1]
         is_virtual = tets >= n
-        used_virtual = np.unique(tets[is_virtual]) - n
+        used_virtual = sorted_unique(tets[is_virtual]) - n
         v_sub = virtual[used_virtual]
-        self.nodes = np.union1d(np.union1d(np.unique(tets[~is_virtual]), v_sub.indices), quads)
+        self.nodes = np.union1d(np.union1d(sorted_unique(tets[~is_virtual]), v_sub.indices), quads)
         m = len(self.nodes)
         self.quads = np.searchsorted(self.nodes, quads).reshape(-1, 4)
         self.quad_rest = corner_determinants(rest[quads.reshape(-1, 4)], "quad4")

@@ -10,12 +10,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kneegui.model import ElementBlock
-from kneegui.topology import boundary_faces
+from kneegui.topology import boundary_faces, sorted_unique
 
 
 def unique_pairs(a: NDArray[np.int64], b: NDArray[np.int64], n_b: int) -> NDArray[np.int64]:
     """Sorted unique ``(a, b)`` pairs of non-negative integers with ``b < n_b``, as (p, 2)."""
-    key = np.unique(a.astype(np.int64) * n_b + b.astype(np.int64))
+    key = sorted_unique(a.astype(np.int64) * n_b + b.astype(np.int64))
     return np.stack([key // n_b, key % n_b], 1)
 
 

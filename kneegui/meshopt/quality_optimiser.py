@@ -56,7 +56,7 @@ from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult, compute_quality
 from kneegui.quality.thresholds import Thresholds, default_thresholds
-from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, ELEMENT_FACES
+from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, ELEMENT_FACES, sorted_unique
 
 ProgressCallback = Callable[[float, str], None]
 #: ``constraints(coords) -> (nodes, normals, offsets)``: node ``nodes[k]`` should satisfy
@@ -469,7 +469,7 @@ def _build_problem(
     quads_g = cat(quads, (0, 4), np.int64)
     faces_g = cat(faces, (0, 4), np.int64)
     used = np.concatenate([corners_g.ravel(), quads_g.ravel(), faces_g[faces_g >= 0]])
-    nodes = np.unique(used)
+    nodes = sorted_unique(used)
 
     def local(idx: NDArray[np.int64]) -> NDArray[np.int64]:
         return np.where(idx >= 0, np.searchsorted(nodes, idx), -1).astype(np.int64)
@@ -879,7 +879,7 @@ def optimise_quality(
     t0 = time.perf_counter()
     start_all = np.array(coords, dtype=np.float64, copy=True)
     x_all = start_all.copy()
-    free_nodes = np.unique(np.asarray(free_nodes, dtype=np.int64))
+    free_nodes = sorted_unique(np.asarray(free_nodes, dtype=np.int64))
     whole = _Stage(blocks, start_all, free_nodes, aims, opt)
     pr0 = whole.pr
     if len(pr0.free) == 0:

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.rigid_blend import DIRECT_SOLVE_MAX, block_cg
+from kneegui.topology import sorted_unique
 
 #: Points per chunk of a threaded :meth:`BoneSurfaceDistance.query`.
 QUERY_CHUNK = 2048
@@ -160,7 +161,7 @@ class BoneSurfaceDistance:
             owner = np.repeat(np.arange(len(far)), counts)
             cand = self.node_tris[nodes]
             ok = cand >= 0
-            pair = np.unique(
+            pair = sorted_unique(
                 np.broadcast_to(owner[:, None], cand.shape)[ok] * len(self.tri_xyz) + cand[ok]
             )
             rows_f, tris_f = np.divmod(pair, len(self.tri_xyz))
@@ -446,7 +447,7 @@ class LocalLaplaceSolve:
             counts = ptr[frontier + 1] - ptr[frontier]
             starts = np.repeat(ptr[frontier] - np.cumsum(counts) + counts, counts)
             nbrs = idx[starts + np.arange(int(counts.sum()))]
-            nbrs = np.unique(nbrs[~mask[nbrs]])
+            nbrs = sorted_unique(nbrs[~mask[nbrs]])
             mask[nbrs] = True
             frontier = nbrs
 
@@ -525,7 +526,7 @@ class BoneDepthGuard:
     def start_depth(self, nodes: NDArray[np.int64]) -> NDArray[np.float64]:
         """(len(nodes), bones) signed distances of the nodes at the start (+ outside)."""
         nodes = np.asarray(nodes, dtype=np.int64)
-        todo = np.unique(nodes[np.isnan(self._start_depth[nodes, 0])]) if self._bones else []
+        todo = sorted_unique(nodes[np.isnan(self._start_depth[nodes, 0])]) if self._bones else []
         if len(todo):
             self._start_depth[todo] = self.depths(todo, self.start[todo])
         return self._start_depth[nodes]

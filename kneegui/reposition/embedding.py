@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from kneegui.errors import GeometryError
+from kneegui.topology import sorted_unique
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,7 @@ def embed_nodes(
     GeometryError
         If the control points are too few or all coplanar.
     """
-    control = np.unique(np.asarray(control, dtype=np.int64))
+    control = sorted_unique(np.asarray(control, dtype=np.int64))
     nodes = np.asarray(nodes, dtype=np.int64)
     pts = coords[control]
     if len(control) < 4:

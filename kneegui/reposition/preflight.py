@@ -50,7 +50,7 @@ from kneegui.quality.kernels import corner_jacobian
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.repositioner import NodeGroups, Repositioner
 from kneegui.setup.kinematic_tables import SUPPORTED_FLEXION_DEG
-from kneegui.topology import CORNER_TRIPLES
+from kneegui.topology import CORNER_TRIPLES, sorted_unique
 
 #: The rigid segments in label order; label ``len(RIGID_SEGMENTS)`` is a movable node.
 RIGID_SEGMENTS: tuple[str, ...] = ("femur", "tibia", "patella", "fixed")
@@ -599,7 +599,7 @@ def _incidence(
             keys.append(block.conn[rows, cols] * len(parts) + part_index)
     if not keys:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    found = np.unique(np.concatenate(keys))
+    found = sorted_unique(np.concatenate(keys))
     return found // len(parts), parts[found % len(parts)]
 
 
@@ -803,7 +803,9 @@ def run_preflight(
         coincident_pairs=pairs,
         coincident_joins=joins,
         coincident_tolerance=float(tolerance),
-        movable_nodes=int(np.count_nonzero(movable_nodes[np.unique(nodes)])) if len(nodes) else 0,
+        movable_nodes=int(np.count_nonzero(movable_nodes[sorted_unique(nodes)]))
+        if len(nodes)
+        else 0,
         movable_nodes_by_part=nodes_by_part,
         movable_elements=n_movable_elements,
         movable_elements_by_part=dict(sorted(elements_by_part.items())),

@@ -60,7 +60,7 @@ from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
 from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
-from kneegui.topology import SOLID_FACES
+from kneegui.topology import SOLID_FACES, sorted_unique
 
 __all__ = [
     "ElasticRelaxation",
@@ -321,7 +321,7 @@ class ElasticRelaxation:
         self.region_radius = float(region_radius)
         self.virtual = sp.csr_matrix((0, n)) if virtual is None else sp.csr_matrix(virtual)
         n_aug = n + self.virtual.shape[0]
-        free = np.unique(np.asarray(free, dtype=np.int64))
+        free = sorted_unique(np.asarray(free, dtype=np.int64))
         is_free = np.zeros(n_aug, dtype=bool)
         is_free[free] = True
         tets = np.asarray(tets, dtype=np.int64)
@@ -391,9 +391,9 @@ class ElasticRelaxation:
         # between the attachment and the contact plane
         self._attached_nb: sp.csr_matrix | None = None
         if attached is not None and len(attached):
-            attached = np.unique(np.asarray(attached, dtype=np.int64))
+            attached = sorted_unique(np.asarray(attached, dtype=np.int64))
             nb = self._adjacency[self.contact_nodes][:, attached].tocsr()
-            used = np.unique(nb.indices)
+            used = sorted_unique(nb.indices)
             self._attached_nodes = attached[used]
             self._attached_memo = {
                 name: DistanceMemo(
@@ -555,7 +555,7 @@ class ElasticRelaxation:
     # ------------------------------------------------------------------ solve
     def energy(self, free: NDArray[np.int64]) -> FoldoverEnergy:
         """The foldover-free energy of the corners touching the nodes ``free``."""
-        rows = np.unique(self._node_rows[free].indices)
+        rows = sorted_unique(self._node_rows[free].indices)
         return FoldoverEnergy(
             self.tets[rows],
             self.inv_rest[rows],
@@ -722,7 +722,7 @@ class ElasticRelaxation:
                             x, contact_global, transforms
                         )
                         parts.append((contact_global[which], c_normals, c_offsets))
-                        report.contact_nodes = len(np.unique(contact_global[which]))
+                        report.contact_nodes = len(sorted_unique(contact_global[which]))
                     if order is not None:
                         o_nodes, o_normals, o_offsets = order.constraints(x)
                         keep = is_sub_free[o_nodes]
@@ -773,7 +773,7 @@ class ElasticRelaxation:
         corner_nodes = sub.tets[det[:c] <= 0].ravel()  # may name virtual nodes (>= m)
         quad_nodes = sub.quads[np.flatnonzero(det[c:] <= 0) % max(len(sub.quads), 1)].ravel()
         bad = np.concatenate([corner_nodes, quad_nodes])
-        bad = np.unique(bad[bad < sub.m])
+        bad = sorted_unique(bad[bad < sub.m])
         is_free = np.zeros(sub.m, dtype=bool)
         is_free[sub.free] = True
         return bad[is_free[bad]]

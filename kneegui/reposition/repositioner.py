@@ -64,7 +64,7 @@ from kneegui.reposition.skin_contours import (
 from kneegui.setup.condyles import surface_node_indices
 from kneegui.setup.format import JointSetup
 from kneegui.setup.kinematic_tables import SUPPORTED_FLEXION_DEG
-from kneegui.topology import corner_tetrahedra
+from kneegui.topology import corner_tetrahedra, sorted_unique
 
 SOFT_ROLES = ("skin", "flesh", "ligament", "meniscus", "tendon", "capsule")
 #: Tissues the paper maps to the skin contours only.
@@ -467,7 +467,7 @@ class Repositioner:
         bone_pts = np.concatenate([srf for srf in surfaces[:3] if len(srf)])
         if opt.coupling_strength <= 0 or len(bone_pts) == 0:
             return np.zeros(len(soft))
-        d, _ = cKDTree(coords[bone_pts]).query(coords[soft])
+        d, _ = cKDTree(coords[bone_pts]).query(coords[soft], workers=-1)
         rel = coords[soft] - self.axes.fe_axis.point
         axial = rel @ self.axes.fe_axis.direction
         r = np.linalg.norm(rel - axial[:, None] * self.axes.fe_axis.direction, axis=1)
@@ -631,7 +631,7 @@ class Repositioner:
             if contours is not None:
                 in_near = np.zeros(self.model.n_nodes, dtype=bool)
                 in_near[near] = True
-                touched = np.unique(contours.contour[in_near[contours.nodes]])
+                touched = sorted_unique(contours.contour[in_near[contours.nodes]])
                 near = np.union1d(near, contours.nodes[np.isin(contours.contour, touched)])
             self._near_soft = near
         return self._near_soft

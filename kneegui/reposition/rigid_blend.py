@@ -11,18 +11,20 @@ linear blend of positions would.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from numba import njit, prange
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.model import ElementBlock
-from kneegui.topology import ELEMENT_EDGES
+from kneegui.topology import ELEMENT_EDGES, sorted_unique
 
 _SMALL = 1e-9
 #: Largest number of free nodes whose weights are solved by a sparse LU (fastest up to there);
@@ -44,7 +46,12 @@ def mesh_edges(blocks: Mapping[str, ElementBlock], element_masks: Mapping[str, N
         return np.zeros((0, 2), dtype=np.int64)
     e = np.sort(np.concatenate(chunks), axis=1)
     e = e[e[:, 0] != e[:, 1]]
-    return np.unique(e, axis=0)
+    if len(e) == 0 or int(e[:, 1].max()) >= 2**31:
+        return np.unique(e, axis=0)
+    # one int64 key per edge: a 1-D unique sorts numbers, not rows (several times faster);
+    # the keys sort as the rows would, so the result is the same array
+    key = sorted_unique((e[:, 0] << 32) | e[:, 1])
+    return np.column_stack([key >> 32, key & 0xFFFFFFFF])
 
 
 def harmonic_weights(
@@ -172,8 +179,9 @@ def block_cg(
     The columns are independent CG runs (each with its own step lengths, stopping when its
     residual is below ``rtol`` times its right-hand side), advanced together so that one sparse
     product serves all of them: a near-linear solve for the large, well-conditioned Laplacians
-    of the rigid blend, where a direct factorisation grows super-linearly. Column sums are
-    einsum reductions, so the result does not depend on the BLAS thread count.
+    of the rigid blend, where a direct factorisation grows super-linearly. The iterations are
+    one compiled, sequential loop (no temporaries, one pass over the matrix per iteration for
+    all columns), so the result does not depend on the thread count.
 
     Parameters
     ----------
@@ -186,40 +194,153 @@ def block_cg(
     rtol : float
     max_iterations : int
     cancel : callable, optional
-        Polled every 25 iterations; returning True raises :class:`kneegui.errors.Cancelled`.
+        Polled before the first iteration and every 25 after; returning True raises
+        :class:`kneegui.errors.Cancelled`.
 
     Returns
     -------
     (n, k) ndarray
     """
     a = sp.csr_matrix(matrix)
-    x = np.array(x0, dtype=np.float64, copy=True)
-    r = rhs - a @ x
-    target = rtol * np.sqrt(np.einsum("ij,ij->j", rhs, rhs))
-    active = np.sqrt(np.einsum("ij,ij->j", r, r)) > target
-    m = inv_diag[:, None]
-    z = m * r
-    p = z.copy()
-    rz = np.einsum("ij,ij->j", r, z)
-    for iteration in range(max_iterations):
-        if not active.any():
-            break
-        if cancel is not None and iteration % 25 == 0 and cancel():
+    a.sort_indices()
+    x = np.array(x0, dtype=np.float64, copy=True, order="C")
+    rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+    inv_diag = np.ascontiguousarray(inv_diag, dtype=np.float64)
+    indptr = a.indptr.astype(np.int64)
+    indices = a.indices.astype(np.int64)
+    data = a.data.astype(np.float64)
+    r = rhs - _csr_times(indptr, indices, data, x)
+    target = rtol * np.sqrt(_column_dots(rhs, rhs))
+    active = np.sqrt(_column_dots(r, r)) > target
+    p = inv_diag[:, None] * r
+    rz = _column_dots(r, p)
+    done = 0
+    while done < max_iterations and active.any():
+        if cancel is not None and cancel():
             raise Cancelled("solve cancelled")
+        steps = min(_CANCEL_EVERY, max_iterations - done)
         cols = np.flatnonzero(active)
-        pc = p[:, cols]
-        ap = a @ pc
-        alpha = rz[cols] / np.einsum("ij,ij->j", pc, ap)
-        x[:, cols] += alpha * pc
-        rc = r[:, cols] - alpha * ap
-        r[:, cols] = rc
-        done = np.sqrt(np.einsum("ij,ij->j", rc, rc)) <= target[cols]
-        zc = m * rc
-        rz_new = np.einsum("ij,ij->j", rc, zc)
-        p[:, cols] = zc + (rz_new / rz[cols]) * pc
-        rz[cols] = rz_new
-        active[cols[done]] = False
+        # the columns still iterating, packed: a converged (or zero) column costs nothing
+        xc, rc, pc = (np.ascontiguousarray(v[:, cols]) for v in (x, r, p))
+        rzc, activec = rz[cols], active[cols]
+        # numba's built-in thread pool (the fallback where no OpenMP or TBB runtime is found)
+        # must not be entered by two threads at once
+        with _PARALLEL_KERNEL_LOCK:
+            done += _cg_iterations(
+                indptr, indices, data, inv_diag, xc, rc, pc, rzc, activec, target[cols], steps
+            )
+        x[:, cols], r[:, cols], p[:, cols] = xc, rc, pc
+        rz[cols], active[cols] = rzc, activec
     return x
+
+
+#: Iterations of :func:`block_cg` between two polls of its ``cancel`` callable.
+_CANCEL_EVERY = 25
+_PARALLEL_KERNEL_LOCK = threading.Lock()
+
+
+@njit(cache=True, nogil=True)
+def _csr_times(indptr, indices, data, v):  # pragma: no cover - compiled
+    n, k = len(indptr) - 1, v.shape[1]
+    out = np.zeros((n, k))
+    for i in range(n):
+        for q in range(indptr[i], indptr[i + 1]):
+            c, w = indices[q], data[q]
+            for j in range(k):
+                out[i, j] += w * v[c, j]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _column_dots(u, v):  # pragma: no cover - compiled
+    out = np.zeros(u.shape[1])
+    for i in range(u.shape[0]):
+        for j in range(u.shape[1]):
+            out[j] += u[i, j] * v[i, j]
+    return out
+
+
+#: Rows per chunk of the compiled CG's parallel passes. The chunking, and so every sum's order,
+#: is fixed by the matrix size alone, never by the thread count.
+_CG_CHUNK_ROWS = 4096
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _cg_iterations(
+    indptr, indices, data, inv_diag, x, r, p, rz, active, target, steps
+):  # pragma: no cover - compiled
+    """Up to ``steps`` Jacobi-preconditioned CG iterations of the active columns, in place.
+
+    A converged column is carried along with a zero step (its ``x``, ``r`` and ``p`` do not
+    change), so every loop runs over all columns without indirection. The passes over the rows
+    run in parallel over fixed chunks; each chunk sums its own rows in order and the chunks'
+    sums are added in chunk order, so the result is the same for any number of threads.
+    Returns the iterations done (fewer once every column has converged).
+    """
+    n, k = x.shape
+    n_chunks = (n + _CG_CHUNK_ROWS - 1) // _CG_CHUNK_ROWS
+    ap = np.empty((n, k))
+    part_a = np.zeros((n_chunks, k))
+    part_b = np.zeros((n_chunks, k))
+    part_c = np.zeros((n_chunks, k))
+    alpha = np.empty(k)
+    beta = np.empty(k)
+    for step in range(steps):
+        if not active.any():
+            return step
+        for chunk in prange(n_chunks):
+            acc = np.empty(k)
+            sums = np.zeros(k)
+            for i in range(chunk * _CG_CHUNK_ROWS, min(n, (chunk + 1) * _CG_CHUNK_ROWS)):
+                acc[:] = 0.0
+                for q in range(indptr[i], indptr[i + 1]):
+                    c, w = indices[q], data[q]
+                    for j in range(k):
+                        acc[j] += w * p[c, j]
+                for j in range(k):
+                    ap[i, j] = acc[j]
+                    sums[j] += p[i, j] * acc[j]
+            part_a[chunk, :] = sums
+        for j in range(k):
+            p_ap = 0.0
+            for chunk in range(n_chunks):
+                p_ap += part_a[chunk, j]
+            alpha[j] = rz[j] / p_ap if active[j] else 0.0
+        for chunk in prange(n_chunks):
+            rr = np.zeros(k)
+            rz_new = np.zeros(k)
+            for i in range(chunk * _CG_CHUNK_ROWS, min(n, (chunk + 1) * _CG_CHUNK_ROWS)):
+                d = inv_diag[i]
+                for j in range(k):
+                    x[i, j] += alpha[j] * p[i, j]
+                    r[i, j] -= alpha[j] * ap[i, j]
+                    rr[j] += r[i, j] * r[i, j]
+                    rz_new[j] += r[i, j] * (d * r[i, j])
+            part_b[chunk, :] = rr
+            part_c[chunk, :] = rz_new
+        converged = np.zeros(k, dtype=np.bool_)
+        for j in range(k):
+            rr_j = 0.0
+            rz_j = 0.0
+            for chunk in range(n_chunks):
+                rr_j += part_b[chunk, j]
+                rz_j += part_c[chunk, j]
+            if active[j]:
+                beta[j] = rz_j / rz[j]
+                rz[j] = rz_j
+                converged[j] = np.sqrt(rr_j) <= target[j]
+            else:
+                beta[j] = 1.0
+        for chunk in prange(n_chunks):
+            for i in range(chunk * _CG_CHUNK_ROWS, min(n, (chunk + 1) * _CG_CHUNK_ROWS)):
+                d = inv_diag[i]
+                for j in range(k):
+                    if active[j]:
+                        p[i, j] = d * r[i, j] + beta[j] * p[i, j]
+        for j in range(k):
+            if converged[j]:
+                active[j] = False
+    return steps
 
 
 def _distance_prior(
@@ -229,7 +350,7 @@ def _distance_prior(
     for s, idx in enumerate(surfaces):
         if len(idx) == 0:
             continue
-        d, _ = cKDTree(coords[idx]).query(coords[free])
+        d, _ = cKDTree(coords[idx]).query(coords[free], workers=-1)
         inv[:, s] = 1.0 / np.maximum(d, 1e-6) ** 2
     total = inv.sum(axis=1, keepdims=True)
     return inv / np.maximum(total, _SMALL)

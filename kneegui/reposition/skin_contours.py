@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kneegui.geometry.transforms import RigidTransform
+from kneegui.topology import sorted_unique
 
 WEIGHT_SHAPES = ("linear", "cosine", "smoothstep")
 
@@ -421,4 +422,4 @@ class ContourOrder:
     def crossing(self, coords: NDArray[np.float64]) -> NDArray[np.int64]:
         """Contour nodes that do not keep their clearance (node indices, sorted)."""
         nodes, normals, offsets = self.constraints(coords)
-        return np.unique(nodes[np.einsum("ij,ij->i", normals, coords[nodes]) < offsets])
+        return sorted_unique(nodes[np.einsum("ij,ij->i", normals, coords[nodes]) < offsets])

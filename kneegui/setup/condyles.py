@@ -31,7 +31,7 @@ from kneegui.errors import GeometryError, SetupError
 from kneegui.geometry.circle_fit import fit_circle_2d
 from kneegui.geometry.transforms import unit
 from kneegui.model import Model
-from kneegui.topology import SHELL_TYPES, boundary_faces
+from kneegui.topology import SHELL_TYPES, boundary_faces, sorted_unique
 
 
 def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.int64]:
@@ -47,7 +47,7 @@ def surface_node_indices(model: Model, part_ids: Iterable[int]) -> NDArray[np.in
         block = model.blocks.get(etype)
         if block is not None:
             nodes.append(block.conn[np.isin(block.part_ids, wanted)].reshape(-1))
-    return np.unique(np.concatenate(nodes)).astype(np.int64)
+    return sorted_unique(np.concatenate(nodes)).astype(np.int64)
 
 
 def _slab(t: NDArray[np.float64], lo: float, hi: float) -> NDArray[np.bool_]:

@@ -225,3 +225,21 @@ def test_node_major_corner_determinants_match_the_kernels(etype):
     reference = np.stack(corner_determinants_cm(list(np.moveaxis(pts, (1, 2), (0, 1))), etype), 1)
     np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-15 * np.abs(reference).max())
     np.testing.assert_array_equal(corner_jacobian(pts, etype), ratio_of_determinants(fast.T))
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.int32, np.uint16, np.bool_, np.float64])
+def test_sorted_unique_is_np_unique(dtype):
+    from kneegui.topology import sorted_unique
+
+    rng = np.random.default_rng(5)
+    for values in (
+        rng.integers(0, 50, size=(300, 4)),  # 2-D: flattened, as np.unique does
+        rng.integers(0, 2**15, size=10_000),
+        np.zeros(0),
+        np.array([7]),
+    ):
+        a = np.asarray(values).astype(dtype)
+        got = sorted_unique(a)
+        expected = np.unique(a)
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)

@@ -1,0 +1,63 @@
+"""The rigid blend's mesh graph (kneegui.reposition.rigid_blend)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kneegui.model import ElementBlock
+from kneegui.reposition.rigid_blend import mesh_edges
+from kneegui.topology import ELEMENT_EDGES
+
+
+def _reference_edges(blocks, masks):
+    chunks = []
+    for etype, block in blocks.items():
+        conn = block.conn[masks[etype]]
+        for a, b in ELEMENT_EDGES[etype]:
+            chunks.append(np.column_stack([conn[:, a], conn[:, b]]))
+    e = np.sort(np.concatenate(chunks), axis=1)
+    return np.unique(e[e[:, 0] != e[:, 1]], axis=0)
+
+
+def test_mesh_edges_are_the_unique_sorted_rows_with_collapsed_edges_dropped():
+    rng = np.random.default_rng(3)
+    n_nodes = 5000
+    hexes = rng.integers(0, n_nodes, size=(3000, 8))
+    hexes[:50, 1] = hexes[:50, 0]  # degenerate (collapsed) edges are dropped
+    tets = rng.integers(0, n_nodes, size=(2000, 4))
+    blocks = {
+        "hex8": ElementBlock("hex8", np.arange(3000), np.zeros(3000), hexes),
+        "tet4": ElementBlock("tet4", np.arange(2000), np.zeros(2000), tets),
+    }
+    masks = {"hex8": rng.random(3000) < 0.7, "tet4": np.ones(2000, dtype=bool)}
+    got = mesh_edges(blocks, masks)
+    expected = _reference_edges(blocks, masks)
+    assert got.dtype == np.int64 and got.shape == expected.shape
+    np.testing.assert_array_equal(got, expected)
+    assert not np.any(got[:, 0] == got[:, 1])
+
+
+def test_block_cg_gives_the_same_bits_with_any_number_of_threads():
+    import numba
+    import scipy.sparse as sp
+
+    from kneegui.reposition.rigid_blend import _CG_CHUNK_ROWS, block_cg
+
+    n = 5 * _CG_CHUNK_ROWS + 123  # several chunks, the last one partial
+    rng = np.random.default_rng(11)
+    off = rng.random(n - 1)
+    lap = sp.diags([-off, np.r_[off, 0.0] + np.r_[0.0, off] + 1e-3, -off], [-1, 0, 1]).tocsr()
+    rhs = rng.random((n, 3))
+    rhs[:, 2] *= 1e-9  # converges at another iteration than the others
+    results = []
+    before = numba.get_num_threads()
+    try:
+        for threads in sorted({1, before}):
+            numba.set_num_threads(threads)
+            results.append(block_cg(lap, rhs, np.zeros_like(rhs), 1.0 / lap.diagonal()))
+    finally:
+        numba.set_num_threads(before)
+    for other in results[1:]:
+        np.testing.assert_array_equal(other, results[0])
+    residual = rhs - lap @ results[0]
+    assert np.all(np.linalg.norm(residual, axis=0) <= 1e-7 * np.linalg.norm(rhs, axis=0))
