@@ -532,8 +532,10 @@ def _element_jacobians(pr: _Problem, x: NDArray[np.float64]) -> NDArray[np.float
     starts = pr.elem_ptr[:-1]
     out = []
     if len(starts):
-        out.append(np.minimum.reduceat(d, starts) / np.maximum.reduceat(d, starts))
-        out[-1][np.maximum.reduceat(d, starts) <= 0] = -1.0
+        hi = np.maximum.reduceat(d, starts)
+        with np.errstate(divide="ignore", invalid="ignore"):  # hi <= 0 is replaced just below
+            out.append(np.minimum.reduceat(d, starts) / hi)
+        out[-1][hi <= 0] = -1.0
     if len(pr.quads):
         p = x[pr.quads]
         n = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
