@@ -13,7 +13,7 @@ import math
 
 from numba import njit
 
-from kneegui.meshopt.quality_kernel import _cross_grad, _normal
+from kneegui.meshopt.quality_kernel import _cross_grad, _diagonal_cross_grad, _normal
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -179,22 +179,5 @@ def quad_barrier_energy(x, quads, rest, weight, eps, grad, ratios):  # pragma: n
             dr = weight * (2.0 * r / chi - (r * r + 1.0) * dchi / (chi * chi)) / rest[q, i]
             # d(w . n) through w, then through n = u x v: d/du = v x w, d/dv = w x u
             _cross_grad(x, grad, n_i, n_1, n_3, nx, ny, nz, dr)
-            gux = (vy * wz - vz * wy) * dr
-            guy = (vz * wx - vx * wz) * dr
-            guz = (vx * wy - vy * wx) * dr
-            gvx = (wy * uz - wz * uy) * dr
-            gvy = (wz * ux - wx * uz) * dr
-            gvz = (wx * uy - wy * ux) * dr
-            grad[q2, 0] += gux
-            grad[q2, 1] += guy
-            grad[q2, 2] += guz
-            grad[q0, 0] -= gux
-            grad[q0, 1] -= guy
-            grad[q0, 2] -= guz
-            grad[q3, 0] += gvx
-            grad[q3, 1] += gvy
-            grad[q3, 2] += gvz
-            grad[q1, 0] -= gvx
-            grad[q1, 1] -= gvy
-            grad[q1, 2] -= gvz
+            _diagonal_cross_grad(x, grad, q0, q1, q2, q3, ux, uy, uz, vx, vy, vz, wx, wy, wz, dr)
     return total

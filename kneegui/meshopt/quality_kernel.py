@@ -174,24 +174,7 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             # vectors as in _cross_grad, and dd/dp = q x w, dd/dq = w x p
             _cross_grad(x, grad, c, a, b, nx, ny, nz, s)
             wx, wy, wz = _normal(x, c, a, b)
-            gpx = s * (qy * wz - qz * wy)
-            gpy = s * (qz * wx - qx * wz)
-            gpz = s * (qx * wy - qy * wx)
-            gqx = s * (wy * pz - wz * py)
-            gqy = s * (wz * px - wx * pz)
-            gqz = s * (wx * py - wy * px)
-            grad[n2, 0] += gpx
-            grad[n2, 1] += gpy
-            grad[n2, 2] += gpz
-            grad[n0, 0] -= gpx
-            grad[n0, 1] -= gpy
-            grad[n0, 2] -= gpz
-            grad[n3, 0] += gqx
-            grad[n3, 1] += gqy
-            grad[n3, 2] += gqz
-            grad[n1, 0] -= gqx
-            grad[n1, 1] -= gqy
-            grad[n1, 2] -= gqz
+            _diagonal_cross_grad(x, grad, n0, n1, n2, n3, px, py, pz, qx, qy, qz, wx, wy, wz, s)
     return total
 
 
@@ -236,6 +219,33 @@ def _cross_grad(x, grad, base, iu, iv, gx, gy, gz, s):  # pragma: no cover - com
     grad[base, 0] -= aux + avx
     grad[base, 1] -= auy + avy
     grad[base, 2] -= auz + avz
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _diagonal_cross_grad(
+    x, grad, q0, q1, q2, q3, px, py, pz, qx, qy, qz, wx, wy, wz, s
+):  # pragma: no cover - compiled
+    """Add ``s * d(w . n)/dx`` for a quad's diagonal normal ``n = p x q`` with
+    ``p = x[q2] - x[q0]``, ``q = x[q3] - x[q1]`` (given), ``w`` held fixed."""
+    # d(w . (p x q))/dp = q x w, /dq = w x p
+    gpx = s * (qy * wz - qz * wy)
+    gpy = s * (qz * wx - qx * wz)
+    gpz = s * (qx * wy - qy * wx)
+    gqx = s * (wy * pz - wz * py)
+    gqy = s * (wz * px - wx * pz)
+    gqz = s * (wx * py - wy * px)
+    grad[q2, 0] += gpx
+    grad[q2, 1] += gpy
+    grad[q2, 2] += gpz
+    grad[q0, 0] -= gpx
+    grad[q0, 1] -= gpy
+    grad[q0, 2] -= gpz
+    grad[q3, 0] += gqx
+    grad[q3, 1] += gqy
+    grad[q3, 2] += gqz
+    grad[q1, 0] -= gqx
+    grad[q1, 1] -= gqy
+    grad[q1, 2] -= gqz
 
 
 @njit(cache=True, nogil=True, inline="always")
