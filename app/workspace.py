@@ -162,6 +162,7 @@ class Workspace(QObject):
         self._quality: QualityResult | None = None
         self._pose_quality: tuple[NDArray[np.int64], QualityResult] | None = None
         self._live_cells: NDArray[np.int64] | None = None
+        self._live_rows: dict[str, NDArray[np.int64]] | None = None
         self._initial_quality: QualityResult | None = None
         self.ligaments: tuple[Ligament, ...] = ()
         self.ligament_curve: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -224,7 +225,7 @@ class Workspace(QObject):
             self.metric, self.threshold = offered[0], None  # a tet model opens on tet collapse
         self._quality = self._initial_quality
         self._pose_quality = None
-        self._live_cells = None
+        self._live_cells = self._live_rows = None
         self.poser = None
         self.ligaments = ()
         self.ligament_curve = None
@@ -625,21 +626,27 @@ class Workspace(QObject):
     def set_live_cells(self, cells: NDArray[np.int64] | None) -> None:
         """Elements whose quality the view shows (measured with each slider pose), or None."""
         self._live_cells = cells
+        self._live_rows = None if cells is None else self._block_rows(cells)
 
-    def _live_quality_job(self):
-        """A function measuring the shown elements at given coordinates, for the pose thread."""
-        cells, evaluator, model = self._live_cells, self._evaluator, self.model
-        if cells is None or evaluator is None or model is None:
-            return None
+    def _block_rows(self, cells: NDArray[np.int64]) -> dict[str, NDArray[np.int64]]:
+        """Global cells as rows of each block (types without any left out)."""
         from kneegui.topology import block_offsets
 
-        offsets = block_offsets(model.blocks)
+        assert self.model is not None
+        offsets = block_offsets(self.model.blocks)
         rows = {}
-        for etype, block in model.blocks.items():
+        for etype, block in self.model.blocks.items():
             start = offsets[etype]
             sel = cells[(cells >= start) & (cells < start + len(block))] - start
             if len(sel):
                 rows[etype] = sel
+        return rows
+
+    def _live_quality_job(self):
+        """A function measuring the shown elements at given coordinates, for the pose thread."""
+        cells, rows, evaluator = self._live_cells, self._live_rows, self._evaluator
+        if cells is None or rows is None or evaluator is None or self.model is None:
+            return None
         # a Jacobian heat-map needs the corner Jacobian alone (bit-identical, a third the cost)
         jacobian_only = self.colour_mode == "quality" and self.metric == "jacobian"
         return lambda coords: (cells, evaluator.evaluate(coords, rows, jacobian_only))
@@ -785,13 +792,9 @@ class Workspace(QObject):
             q = self.quality()
             rows = {e: np.arange(len(b)) for e, b in self.model.blocks.items()}
         else:
-            offsets = block_offsets(self.model.blocks)
-            rows = {}
-            for etype, block in self.model.blocks.items():
-                start = offsets[etype]
-                sel = cells[(cells >= start) & (cells < start + len(block))] - start
-                if len(sel):
-                    rows[etype] = sel
+            # the shown cells' rows are worked out once, when the view sets them
+            live = cells is self._live_cells and self._live_rows is not None
+            rows = self._live_rows if live else self._block_rows(cells)
             if self._quality is not None:
                 q = self._quality
             elif (
