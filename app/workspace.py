@@ -647,9 +647,12 @@ class Workspace(QObject):
         cells, rows, evaluator = self._live_cells, self._live_rows, self._evaluator
         if cells is None or rows is None or evaluator is None or self.model is None:
             return None
-        # a Jacobian heat-map needs the corner Jacobian alone (bit-identical, a third the cost)
-        jacobian_only = self.colour_mode == "quality" and self.metric == "jacobian"
-        return lambda coords: (cells, evaluator.evaluate(coords, rows, jacobian_only))
+        # a Jacobian or tet-collapse heat-map needs that measure alone (bit-identical, a third
+        # or a sixth of the cost); the others measure everything
+        only = None
+        if self.colour_mode == "quality" and self.metric in ("jacobian", "tet_collapse"):
+            only = HEATMAP_METRICS[self.metric][1]
+        return lambda coords: (cells, evaluator.evaluate(coords, rows, only=only))
 
     def request_flexion(self, degrees: float) -> None:
         """Re-pose at ``degrees`` as soon as possible (slider drags).

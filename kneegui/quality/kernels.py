@@ -406,6 +406,44 @@ TET10_MIDSIDE: tuple[tuple[int, int, int], ...] = tuple(
 )
 
 
+def _tet_face_normals(p: Sequence[Vec], a: Vec, b: Vec, c: Vec) -> tuple[Vec, Vec, Vec, Vec]:
+    """Outward area vectors (twice the face area) of the faces opposite nodes 0..3 (they sum
+    to 0); ``a, b, c`` are the edges from node 0."""
+    n0 = _cross(p[2] - p[1], p[3] - p[1])
+    n2 = _cross(a, c)
+    n3 = _cross(b, a)
+    n1 = n0 + n2
+    n1 += n3
+    np.negative(n1, out=n1)
+    return n0, n1, n2, n3
+
+
+def _tet_collapse(six_volume: Arr, area_sq: Sequence[Arr]) -> tuple[Arr, Arr]:
+    """HyperMesh's tet collapse from six times the volume and the faces' squared area vectors
+    (h_i / sqrt(A_i) = sqrt(2) 6V / |n_i|^1.5 is smallest at the largest face), and the
+    largest face's |n|."""
+    largest_sq = np.maximum(np.maximum(area_sq[0], area_sq[1]), np.maximum(area_sq[2], area_sq[3]))
+    largest = np.sqrt(largest_sq)
+    collapse = np.zeros_like(six_volume)
+    np.divide(
+        (np.sqrt(2.0) / TET_COLLAPSE_NORM) * six_volume,
+        largest * np.sqrt(largest),
+        out=collapse,
+        where=largest > 0.0,
+    )
+    return collapse, largest
+
+
+def tet_collapse_only(p: Sequence[Vec]) -> Arr:
+    """The tet collapse alone, bit-identical to the ``tet_collapse`` of :func:`tet4_quality`
+    (the same operations on the same arrays), for a tet-collapse heat-map redrawn with every
+    slider pose: about a sixth of the full kernel's cost. Component-major corner positions."""
+    a, b, c = p[1] - p[0], p[2] - p[0], p[3] - p[0]
+    six_volume = _triple(a, b, c)
+    normals = _tet_face_normals(p, a, b, c)
+    return _tet_collapse(six_volume, [_sq(n) for n in normals])[0]
+
+
 def tet_shape_measures(p: Sequence[Vec], six_volume: Arr, edge_sq: Sequence[Arr]) -> dict[str, Arr]:
     """The crash pre-processors' tetrahedron measures (docs/quality.md), vectorised.
 
@@ -429,26 +467,11 @@ def tet_shape_measures(p: Sequence[Vec], six_volume: Arr, edge_sq: Sequence[Arr]
         edge / (shortest altitude x sqrt(3/2)) (1 regular, ``inf`` flat).
     """
     a, b, c = p[1] - p[0], p[2] - p[0], p[3] - p[0]
-    # outward area vectors (twice the face area) of the faces opposite nodes 0..3; they sum to 0
-    n0 = _cross(p[2] - p[1], p[3] - p[1])
-    n2 = _cross(a, c)
-    n3 = _cross(b, a)
-    n1 = n0 + n2
-    n1 += n3
-    np.negative(n1, out=n1)
-    normals = (n0, n1, n2, n3)
+    normals = _tet_face_normals(p, a, b, c)
+    _, n1, n2, n3 = normals
     area_sq = [_sq(n) for n in normals]
-    largest_sq = np.maximum(np.maximum(area_sq[0], area_sq[1]), np.maximum(area_sq[2], area_sq[3]))
     smallest_sq = np.minimum(np.minimum(area_sq[0], area_sq[1]), np.minimum(area_sq[2], area_sq[3]))
-    largest = np.sqrt(largest_sq)
-    # h_i / sqrt(A_i) = sqrt(2) 6V / |n_i|^1.5: smallest at the largest face
-    collapse = np.zeros_like(six_volume)
-    np.divide(
-        (np.sqrt(2.0) / TET_COLLAPSE_NORM) * six_volume,
-        largest * np.sqrt(largest),
-        out=collapse,
-        where=largest > 0.0,
-    )
+    collapse, largest = _tet_collapse(six_volume, area_sq)
     # interior dihedral angle along the edge two faces share: cos = -(n_a . n_b) / |n_a| |n_b|
     inv = [np.zeros_like(six_volume) for _ in normals]
     for k in range(4):

@@ -23,6 +23,7 @@ from kneegui.quality.kernels import (
     TET10_METRICS,
     TET_METRICS,
     corner_jacobian_only,
+    tet_collapse_only,
 )
 
 #: Metric arrays every :class:`ElementQuality` holds, in display order.
@@ -39,6 +40,8 @@ METRICS: tuple[str, ...] = (
 TET_ONLY_METRICS: tuple[str, ...] = TET_METRICS + TET10_METRICS
 #: Element types that have quality metrics (lines and springs have none).
 MEASURED_TYPES: tuple[str, ...] = tuple(KERNELS)
+#: The metrics :meth:`QualityEvaluator.evaluate` can measure alone (``only=``).
+ONLY_METRICS: tuple[str, ...] = ("jacobian_corner", "tet_collapse")
 
 _CHUNK = 8192  # elements per kernel call: keeps the temporaries in cache
 _PARALLEL_MIN = 4 * _CHUNK
@@ -73,7 +76,7 @@ class ElementQuality:
         edge length. ``None`` for other types.
     measured : tuple of str or None
         ``None``: every metric of the type was measured. Otherwise the only ones that were
-        (``QualityEvaluator.evaluate(..., jacobian_only=True)``); asking for another raises.
+        (``QualityEvaluator.evaluate(..., only=...)``); asking for another raises.
     """
 
     etype: str
@@ -190,7 +193,7 @@ class QualityEvaluator:
         self,
         coords: ArrayLike,
         rows: Mapping[str, ArrayLike] | None = None,
-        jacobian_only: bool = False,
+        only: str | None = None,
     ) -> QualityResult:
         """Measure the elements at the given node coordinates.
 
@@ -201,15 +204,19 @@ class QualityEvaluator:
         rows : mapping of str to array_like of int, optional
             Evaluate only these rows of each block (types not named are skipped). Default:
             every element.
-        jacobian_only : bool
-            Measure the corner Jacobian alone (bit-identical to the full evaluation's): about
-            a third of the cost, for a Jacobian heat-map redrawn with every slider pose. The
-            other metrics of the result are NaN and marked as not measured.
+        only : {"jacobian_corner", "tet_collapse"}, optional
+            Measure this one metric (and the corner Jacobian, which says what is inverted)
+            alone, bit-identical to the full evaluation's, for a heat-map redrawn with every
+            slider pose: about a third of the cost for the Jacobian, a sixth for the tet
+            collapse. The other metrics of the result are NaN and marked as not measured (a
+            type without the metric, a hex for the tet collapse, has it NaN as always).
 
         Returns
         -------
         QualityResult
         """
+        if only is not None and only not in ONLY_METRICS:
+            raise ValueError(f"only= takes one of {', '.join(ONLY_METRICS)}, not {only!r}")
         xyz = np.asarray(coords, dtype=np.float64)
         n_selected = sum(
             len(c) if rows is None else (len(np.atleast_1d(rows[t])) if t in rows else 0)
@@ -227,15 +234,16 @@ class QualityEvaluator:
                 sub = conn[sel]
             else:
                 continue
-            if jacobian_only:
-                jac = self._run(etype, xyz, xyz_t, sub, jacobian_only=True)["jacobian_corner"]
+            if only is not None:
+                values = self._run(etype, xyz, xyz_t, sub, only=only)
+                jac = values["jacobian_corner"]
                 out[etype] = ElementQuality(
                     etype=etype,
                     rows=sel,
                     inverted=jac <= 0.0,
-                    jacobian_corner=jac,
-                    **{k: np.full(len(sel), np.nan) for k in METRICS if k != "jacobian_corner"},
-                    measured=("jacobian_corner",),
+                    **{k: values.get(k, np.full(len(sel), np.nan)) for k in METRICS},
+                    tet_collapse=values.get("tet_collapse"),
+                    measured=tuple(dict.fromkeys(("jacobian_corner", only))),
                 )
                 continue
             values = self._run(etype, xyz, xyz_t, sub)
@@ -250,16 +258,22 @@ class QualityEvaluator:
         xyz: NDArray[np.float64],
         xyz_t: NDArray[np.float64] | None,
         conn: NDArray[np.int64],
-        jacobian_only: bool = False,
+        only: str | None = None,
     ) -> dict[str, NDArray[np.float64]]:
-        if jacobian_only:
+        if only is not None:
+            tets = etype in ("tet4", "tet10")
             if etype == "tet10":
                 conn = conn[:, :4]  # the corner tetrahedron
+            names: tuple[str, ...] = ("jacobian_corner",)
+            if only == "tet_collapse" and tets:
+                names = ("jacobian_corner", "tet_collapse")
 
             def kernel(pts):
-                return {"jacobian_corner": corner_jacobian_only(pts, etype)}
+                out = {"jacobian_corner": corner_jacobian_only(pts, etype)}
+                if len(names) > 1:
+                    out["tet_collapse"] = tet_collapse_only(pts)
+                return out
 
-            names: tuple[str, ...] = ("jacobian_corner",)
         else:
             kernel = KERNELS[etype][0]
             names = METRICS + KERNEL_EXTRA_METRICS.get(etype, ())

@@ -345,9 +345,11 @@ def test_beams_and_springs_are_not_measured():
     assert compute_quality(pts, blocks).n_elements == 0
 
 
-def test_jacobian_only_evaluation_is_bit_identical_to_the_full_one():
-    # the slider's Jacobian heat-map measures the corner Jacobian alone; its values must be the
-    # full evaluation's exactly, on fair, distorted and inverted elements of every type
+@pytest.mark.parametrize("only", ["jacobian_corner", "tet_collapse"])
+def test_single_metric_evaluation_is_bit_identical_to_the_full_one(only):
+    # a heat-map redrawn with every slider pose measures its metric alone (and the Jacobian,
+    # which says what is inverted); the values must be the full evaluation's exactly, on fair,
+    # distorted and inverted elements of every type
     from kneegui.topology import NODES_PER_ELEMENT
 
     rng = np.random.default_rng(7)
@@ -366,13 +368,19 @@ def test_jacobian_only_evaluation_is_bit_identical_to_the_full_one():
     rows = {etype: np.sort(rng.choice(n, 150, replace=False)) for etype in blocks}
     for subset in (None, rows):
         full = evaluator.evaluate(coords, subset)
-        fast = evaluator.evaluate(coords, subset, jacobian_only=True)
+        fast = evaluator.evaluate(coords, subset, only=only)
         assert list(fast) == list(full)
         for etype in full:
             np.testing.assert_array_equal(fast[etype].rows, full[etype].rows)
             np.testing.assert_array_equal(fast[etype].jacobian_corner, full[etype].jacobian_corner)
             np.testing.assert_array_equal(fast[etype].inverted, full[etype].inverted)
+            np.testing.assert_array_equal(fast[etype].metric(only), full[etype].metric(only))
             assert fast[etype].has("jacobian") and not fast[etype].has("aspect")
+            assert fast[etype].has(only) == full[etype].has(only)
             with pytest.raises(ValueError, match="not measured"):
                 fast[etype].metric("volume")
+        collapse = full["tet4"].tet_collapse
+        assert collapse.min() < 0 < collapse.max()  # inverted and valid tets among the cases
     assert 0 < full.n_inverted < full.n_elements  # the cases include inverted elements
+    with pytest.raises(ValueError, match="only= takes one of"):
+        evaluator.evaluate(coords, only="aspect")
