@@ -1,6 +1,7 @@
 """``kneegui-gui [DECK] [--setup S] [--screenshot PNG] [--flexion DEG] [--demo-elements N]``.
 
-With no deck the window opens the built-in demo leg with its setup. With ``--screenshot`` it
+With no deck the window opens the built-in demo leg with its setup (``--demo-element-type`` and
+``--demo-joint`` choose a variant, as ``kneegui demo``). With ``--screenshot`` it
 saves a PNG of the real window once the model is posed and rendered (and, as in the window, the
 export of the resting angle is shown: ``--live`` keeps the live mapping), then exits (0 on
 success).
@@ -15,6 +16,21 @@ import time
 from pathlib import Path
 
 READY_TIMEOUT_S = 300.0
+#: The heat-map measures (app.workspace.HEATMAP_METRICS; kept here so that ``--help`` does not
+#: import Qt; a test checks the two agree).
+HEATMAP_KEYS = (
+    "jacobian",
+    "tet_collapse",
+    "dihedral_min",
+    "dihedral_max",
+    "vol_skew",
+    "midside_tangent",
+    "aspect",
+    "warpage",
+    "skew",
+    "volume_change",
+    "area_change",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -30,8 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--metric",
-        default="jacobian",
-        choices=("jacobian", "aspect", "warpage", "skew", "volume_change"),
+        default=None,
+        choices=HEATMAP_KEYS,
+        help="heat-map measure (default: the first the model offers: the tet collapse on a "
+        "tetrahedral model, the Jacobian otherwise)",
     )
     parser.add_argument(
         "--relax",
@@ -45,6 +63,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--demo-elements", type=int, default=None, help="size of the generated demo leg (elements)"
+    )
+    parser.add_argument(
+        "--demo-element-type",
+        default="hex",
+        choices=("hex", "tet", "mixed", "tet10"),
+        help="solid elements of the demo leg (as kneegui demo --element-type)",
+    )
+    parser.add_argument(
+        "--demo-joint",
+        default="sliding",
+        choices=("sliding", "welded"),
+        help="joint meshing of the demo leg (as kneegui demo --joint)",
     )
     return parser
 
@@ -75,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.deck:
             window.guard(window.open_deck, args.deck, args.setup)
         else:
-            window.guard(window.open_demo, args.demo_elements)
+            window.guard(
+                window.open_demo, args.demo_elements, args.demo_element_type, args.demo_joint
+            )
 
     QTimer.singleShot(0, start)
     started = time.monotonic()
@@ -91,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.flexion is not None:
                 ws.set_flexion(args.flexion)
             if args.colour:
-                ws.set_metric(args.metric)
+                ws.set_metric(args.metric or ws.heatmap_metrics()[0])
                 ws.set_colour_mode(args.colour)
             if args.relax:
                 window.guard(ws.smooth)
@@ -108,7 +140,12 @@ def main(argv: list[str] | None = None) -> int:
     def finish(ready: bool) -> None:
         window.viewport.flush()
         out = window.save_screenshot(Path(args.screenshot))
-        print(f"screenshot: {out}" + ("" if ready else f" (not ready: {window.last_error})"))
+        ws = window.ws
+        shown = ws.colour_mode + (f": {ws.metric}" if ws.colour_mode == "quality" else "")
+        print(
+            f"screenshot: {out} ({shown}, {ws.view_kind})"
+            + ("" if ready else f" (not ready: {window.last_error})")
+        )
         status["code"] = 0 if ready else 1
         window.close()
         app.quit()

@@ -278,10 +278,16 @@ class MainWindow(QMainWindow):
         box.open()
 
     # ------------------------------------------------------------------ file actions
-    def open_demo(self, elements: int | None = None) -> None:
+    def open_demo(
+        self, elements: int | None = None, element_type: str = "hex", joint: str = "sliding"
+    ) -> None:
+        """Open the built-in demo leg (generated on first use; ``element_type`` and ``joint``
+        choose a variant, as ``kneegui demo``)."""
         from app.demo import DEFAULT_DEMO_ELEMENTS, demo_files
 
-        deck, setup = demo_files(elements or DEFAULT_DEMO_ELEMENTS)
+        deck, setup = demo_files(
+            elements or DEFAULT_DEMO_ELEMENTS, element_type=element_type, joint=joint
+        )
         self.ws.open_deck(deck, setup)
 
     def open_deck(self, path: str | Path, setup: str | Path | None = None) -> None:

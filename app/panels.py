@@ -706,10 +706,26 @@ class QualityCurvePanel(QWidget):
 
     #: (figure attribute, axis label, live colour)
     SERIES = (
+        ("worst_tet_collapse", "worst tet\ncollapse", "#9467bd"),
         ("worst_jacobian", "worst Jacobian", "#1f77b4"),
         ("inverted", "inverted elements", "#d62728"),
         ("max_volume_change_pct", "largest volume\nchange (%)", "#2ca02c"),
     )
+    #: Figures on the -1..1 scale of a determinant ratio (an inverted element's can reach -20)
+    RATIO_SERIES = ("worst_tet_collapse", "worst_jacobian")
+
+    def plotted(self) -> tuple[tuple[str, str, str], ...]:
+        """The :data:`SERIES` that say something on the open model: the tet collapse with
+        tets, the Jacobian with hexes, wedges, pyramids or quads (or with neither)."""
+        from app.preview import jacobian_says_something
+
+        model = self.ws.model
+        tets = model is not None and any(
+            len(b) for t, b in model.blocks.items() if t in ("tet4", "tet10")
+        )
+        jacobian = model is None or jacobian_says_something(model) or not tets
+        keep = {"worst_tet_collapse": tets, "worst_jacobian": jacobian}
+        return tuple(entry for entry in self.SERIES if keep.get(entry[0], True))
 
     def series(self) -> dict[str, tuple]:
         """What is plotted: per figure, (live angles, live values, exported angles, values)."""
@@ -717,7 +733,7 @@ class QualityCurvePanel(QWidget):
         curve = preview.live_curve
         angles = sorted(preview.exported_points)
         out = {}
-        for name, _, _ in self.SERIES:
+        for name, _, _ in self.plotted():
             live = (curve.angles, getattr(curve, name)) if curve is not None else ((), ())
             exported = [getattr(preview.exported_points[a], name) for a in angles]
             out[name] = (*live, angles, exported)
@@ -726,8 +742,9 @@ class QualityCurvePanel(QWidget):
     def redraw(self) -> None:
         self.figure.clear()
         data = self.series()
-        self.axes = self.figure.subplots(len(self.SERIES), 1, sharex=True)
-        for ax, (name, label, colour) in zip(self.axes, self.SERIES, strict=True):
+        plotted = self.plotted()
+        self.axes = list(self.figure.subplots(len(plotted), 1, sharex=True))
+        for ax, (name, label, colour) in zip(self.axes, plotted, strict=True):
             live_x, live_y, exp_x, exp_y = data[name]
             if len(live_x):
                 ax.plot(live_x, live_y, color=colour, lw=1.2, label=LIVE_LABEL)
@@ -736,9 +753,10 @@ class QualityCurvePanel(QWidget):
             ax.set_ylabel(label, fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
-        self.axes[0].axhline(0.0, color="#888888", lw=0.6)
-        # an inverted element's determinant ratio can reach -20; the usable range is 0..1
-        self.axes[0].set_ylim(-1.05, 1.05)
+            if name in self.RATIO_SERIES:
+                # an inverted element's ratio can reach -20; the usable range is 0..1
+                ax.axhline(0.0, color="#888888", lw=0.6)
+                ax.set_ylim(-1.05, 1.05)
         self.axes[-1].set_xlabel("flexion (°)", fontsize=8)
         if self.ws.preview.live_curve is None:
             self.axes[0].set_title("live mapping: computing…", fontsize=8)

@@ -59,32 +59,58 @@ class PoseFigures:
     max_volume_change_pct : float
         Signed volume change of the solid whose change is largest in magnitude, percent
         (``volume_change.max_element_pct``); NaN without solids.
+    worst_tet_collapse : float
+        Smallest tet collapse (``quality.<final>.tet_collapse.worst``); NaN without tets.
+    jacobian_says_something : bool
+        Whether the model has elements whose corner Jacobian is more than its sign (hexes,
+        wedges, pyramids, quad shells); on tets and triangles alone it is 1 by definition and
+        the figures leave it out.
     """
 
     inverted: int
     worst_jacobian: float
     max_volume_change_pct: float
+    worst_tet_collapse: float = float("nan")
+    jacobian_says_something: bool = True
 
     @classmethod
-    def from_report(cls, report: Mapping[str, Any]) -> PoseFigures:
+    def from_report(cls, report: Mapping[str, Any], model: Model) -> PoseFigures:
         """The figures of a :func:`~kneegui.reposition.pipeline.pose_model` report (the pose
-        it writes: smoothed when it was smoothed)."""
+        it writes: smoothed when it was smoothed) of ``model``."""
         quality = report["quality"]
         final = quality.get("smoothed", quality["posed"])
         worst = final["jacobian"]["worst"]
         change = report["volume_change"]["max_element_pct"]
+        collapse = (final.get("tet_collapse") or {}).get("worst")
         return cls(
             int(final["inverted"]),
             float("nan") if worst is None else float(worst),
             float("nan") if change is None else float(change),
+            float("nan") if collapse is None else float(collapse),
+            jacobian_says_something(model),
         )
 
     def text(self) -> str:
-        """``inverted 3 · worst Jacobian 0.213 · largest volume change +12.1 %``."""
-        return (
-            f"inverted {self.inverted} · worst Jacobian {self.worst_jacobian:.3f} · "
-            f"largest volume change {self.max_volume_change_pct:+.1f} %"
-        )
+        """``inverted 3 · worst Jacobian 0.213 · largest volume change +12.1 %``, with the worst
+        tet collapse before the Jacobian on a model with tets (and without the Jacobian when
+        it says nothing there)."""
+        parts = [f"inverted {self.inverted}"]
+        if np.isfinite(self.worst_tet_collapse):
+            parts.append(f"worst tet collapse {self.worst_tet_collapse:.3f}")
+        if self.jacobian_says_something or not np.isfinite(self.worst_tet_collapse):
+            parts.append(f"worst Jacobian {self.worst_jacobian:.3f}")
+        parts.append(f"largest volume change {self.max_volume_change_pct:+.1f} %")
+        return " · ".join(parts)
+
+
+def jacobian_says_something(model: Model) -> bool:
+    """Whether ``model`` has elements whose corner Jacobian is more than its sign (see
+    :attr:`PoseFigures.jacobian_says_something`)."""
+    return any(len(block) for etype, block in model.blocks.items() if etype in JACOBIAN_TYPES)
+
+
+#: Element types whose corner Jacobian varies with their shape (a tet's or a triangle's is 1).
+JACOBIAN_TYPES = ("hex8", "wedge6", "pyramid5", "quad4")
 
 
 def pose_figures(model: Model, quality: QualityResult, initial: QualityResult) -> PoseFigures:
@@ -106,8 +132,15 @@ def pose_figures(model: Model, quality: QualityResult, initial: QualityResult) -
         k = int(np.argmax(np.abs(pct)))
         if not found or abs(pct[k]) > abs(largest):
             largest, found = float(pct[k]), True
+    collapses = [
+        quality[t].tet_collapse for t in ("tet4", "tet10") if t in quality and len(quality[t])
+    ]
     return PoseFigures(
-        quality.n_inverted, quality.worst_jacobian(), largest if found else float("nan")
+        quality.n_inverted,
+        quality.worst_jacobian(),
+        largest if found else float("nan"),
+        float(min(c.min() for c in collapses)) if collapses else float("nan"),
+        jacobian_says_something(model),
     )
 
 
@@ -135,6 +168,7 @@ class QualityCurve:
     inverted: NDArray[np.int64]
     worst_jacobian: NDArray[np.float64]
     max_volume_change_pct: NDArray[np.float64]
+    worst_tet_collapse: NDArray[np.float64]
 
 
 def live_quality_curve(
@@ -158,6 +192,7 @@ def live_quality_curve(
         np.array([r.inverted for r in rows], dtype=np.int64),
         np.array([r.worst_jacobian for r in rows]),
         np.array([r.max_volume_change_pct for r in rows]),
+        np.array([r.worst_tet_collapse for r in rows]),
     )
 
 
@@ -268,7 +303,7 @@ class ExportPreview(QObject):
                 generation,
                 outcome.posed,
                 outcome.message,
-                PoseFigures.from_report(outcome.report),
+                PoseFigures.from_report(outcome.report, outcome.posed.model),
             )
             if poser is ws.poser:
                 self.exported_points[degrees] = exported.figures

@@ -32,26 +32,38 @@ def smooth_current(
 ) -> SmoothingOutcome:
     """Pose, relax and smooth the model at ``flexion_deg`` exactly as ``kneegui pose`` does
     (:func:`kneegui.reposition.pipeline.pose_model`), with a status line built from its report."""
+    from app.preview import jacobian_says_something
+
     posed = pose_model(repositioner, flexion_deg, progress=progress, cancel=cancelled)
-    return SmoothingOutcome(
-        np.array(posed.model.coords), posed.report, status_line(posed.report), posed
-    )
+    message = status_line(posed.report, jacobian_says_something(posed.model))
+    return SmoothingOutcome(np.array(posed.model.coords), posed.report, message, posed)
 
 
-def status_line(report: Mapping[str, Any]) -> str:
+def status_line(report: Mapping[str, Any], jacobian: bool = True) -> str:
     """One line from a :func:`~kneegui.reposition.pipeline.pose_model` report: its warnings
     first (the status bar cuts a long line at the window's edge), then what the relaxation, its
-    quality optimisation and the smoother did."""
+    quality optimisation and the smoother did. The quality optimisation's worst tet collapse
+    is quoted when it measured tets, its worst Jacobian when ``jacobian`` (the model has
+    elements whose Jacobian is more than its sign) or when there were no tets."""
     parts = []
     relax = report.get("relaxation")
     if relax is not None:
         stages = ""
         quality = relax.get("quality")
         if quality is not None and quality["free_nodes"]:
-            stages += (
-                f", quality optimised: worst Jacobian {quality['worst_before']:.3f} -> "
-                f"{quality['worst_after']:.3f}"
+            figures = []
+            before, after = (
+                quality.get("collapse_worst_before"),
+                quality.get("collapse_worst_after"),
             )
+            tets = before is not None and after is not None and np.isfinite([before, after]).all()
+            if tets:
+                figures.append(f"worst tet collapse {before:.3f} -> {after:.3f}")
+            if jacobian or not tets:
+                figures.append(
+                    f"worst Jacobian {quality['worst_before']:.3f} -> {quality['worst_after']:.3f}"
+                )
+            stages += ", quality optimised: " + ", ".join(figures)
         parts.append(
             f"relaxed {relax['free_nodes']} nodes ({relax['inverted_corners_before']} "
             f"inverted corners -> {relax['inverted_corners_after']}{stages}, "

@@ -206,6 +206,8 @@ def run(
     drag_hz: float = 60.0,
     repeats: int = 3,
     rest_export: bool = False,
+    element_type: str = "hex",
+    joint: str = "sliding",
 ) -> dict:
     os.environ.setdefault("QT_API", "pyside6")
     from PySide6.QtCore import QSettings
@@ -220,7 +222,9 @@ def run(
     QSettings.setPath(QSettings.Format.IniFormat, QSettings.Scope.UserScope, str(tmp))
     app = QApplication.instance() or QApplication([])
     elements = elements or DEFAULT_DEMO_ELEMENTS
-    deck, setup = demo_files(elements, cache_dir=tmp / "cache")
+    deck, setup = demo_files(
+        elements, cache_dir=tmp / "cache", element_type=element_type, joint=joint
+    )
     window = MainWindow()
     window.resize(1500, 920)
     window.show()
@@ -245,21 +249,24 @@ def run(
         return out
 
     results = {"part_colours": repeated()}
-    window.ws.set_metric("jacobian")
+    metric = window.ws.heatmap_metrics()[0]  # what the window offers first on this model
+    window.ws.set_metric(metric)
     window.ws.set_colour_mode("quality")
     window.viewport.flush()
-    breakdown["jacobian_heatmap"] = _breakdown(app, window)
-    results["jacobian_heatmap"] = repeated()
+    breakdown[f"{metric}_heatmap"] = _breakdown(app, window)
+    results[f"{metric}_heatmap"] = repeated()
     rest_s = _rest_export_seconds(app, window, REST_ANGLE_DEG) if rest_export else None
     model = window.ws.model
     out = {
         "benchmark": "gui slider",
         "view_class": type(window.viewport.plotter).__name__,
         "demo_elements_requested": elements,
+        "demo_variant": {"element_type": element_type, "joint": joint},
         "model": {
             "nodes": model.n_nodes,
             "elements": model.n_elements,
             "parts": len(model.part_ids()),
+            "element_types": {t: len(b) for t, b in model.blocks.items() if len(b)},
         },
         "poser": getattr(window.ws.poser, "kind", type(window.ws.poser).__name__),
         "open_to_ready_s": ready_s,
@@ -278,6 +285,37 @@ def run(
     return out
 
 
+def _variant(result: dict) -> tuple[str, str]:
+    v = result.get("demo_variant") or {"element_type": "hex", "joint": "sliding"}
+    return v["element_type"], v["joint"]
+
+
+def _variant_flags(result: dict) -> str:
+    element_type, joint = _variant(result)
+    if (element_type, joint) == ("hex", "sliding"):
+        return ""
+    return f"with `--element-type {element_type} --joint {joint}` "
+
+
+def _json_name(result: dict) -> str:
+    element_type, joint = _variant(result)
+    if (element_type, joint) == ("hex", "sliding"):
+        return "gui.json"
+    return f"gui-{element_type}-{joint}.json"
+
+
+def _variant_words(result: dict) -> str:
+    element_type, joint = _variant(result)
+    if (element_type, joint) == ("hex", "sliding"):
+        return "the default demo leg"
+    return f"the demo leg's {element_type} variant ({joint} joint)"
+
+
+def _type_counts(model: dict) -> str:
+    counts = model.get("element_types") or {}
+    return ", ".join(f"{n:,} {t}" for t, n in counts.items()) or "?"
+
+
 def write_markdown(result: dict, path: Path) -> None:
     m = result["model"]
     r0 = next(iter(result["results"].values()))
@@ -285,8 +323,9 @@ def write_markdown(result: dict, path: Path) -> None:
         "# GUI slider benchmark",
         "",
         'Produced by `xvfb-run -a -s "-screen 0 1600x1000x24" python -m bench.gui_bench` '
-        "(bench/results/gui.json). The real main window on the default demo leg "
-        f"({m['nodes']} nodes, {m['elements']} elements, {m['parts']} parts); the flexion slider "
+        f"{_variant_flags(result)}(bench/results/{_json_name(result)}). The real main window on "
+        f"{_variant_words(result)} ({m['nodes']} nodes, {m['elements']} elements: "
+        f"{_type_counts(m)}; {m['parts']} parts); the flexion slider "
         f"is moved over the whole range (-5° to 140°) in {r0['slider_positions']} positions, "
         "(a) stepwise: each move waits until its pose is drawn (time from the slider move to the "
         "end of the render); (b) drag: the slider follows a hand moving over the range at "
@@ -357,10 +396,32 @@ def main(argv: list[str] | None = None) -> int:
         help="also time the export shown when the slider rests at 90 degrees (the export path: "
         "seconds to minutes)",
     )
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "gui.json")
-    parser.add_argument("--markdown", type=Path, default=ROOT / "docs" / "gui-benchmark.md")
+    parser.add_argument(
+        "--element-type",
+        default="hex",
+        choices=("hex", "tet", "mixed", "tet10"),
+        help="demo variant's solid elements (as kneegui demo); the heat-map pass uses the "
+        "first measure the window offers on it (tet collapse on tetrahedra)",
+    )
+    parser.add_argument("--joint", default="sliding", choices=("sliding", "welded"))
+    parser.add_argument("--out", type=Path, default=None, help="default bench/results/gui.json")
+    parser.add_argument("--markdown", type=Path, default=None, help="default docs/gui-benchmark.md")
     args = parser.parse_args(argv)
-    result = run(args.elements, args.steps, repeats=args.repeats, rest_export=args.rest_export)
+    variant = (
+        ""
+        if (args.element_type, args.joint) == ("hex", "sliding")
+        else (f"-{args.element_type}-{args.joint}")
+    )
+    args.out = args.out or ROOT / "bench" / "results" / f"gui{variant}.json"
+    args.markdown = args.markdown or ROOT / "docs" / f"gui-benchmark{variant}.md"
+    result = run(
+        args.elements,
+        args.steps,
+        repeats=args.repeats,
+        rest_export=args.rest_export,
+        element_type=args.element_type,
+        joint=args.joint,
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     if args.markdown:

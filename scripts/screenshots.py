@@ -10,7 +10,10 @@ the default demo leg and saves:
   the F-E and L-R axes and the Landmarks panel;
 - docs/images/gui-exported90.png: the same pose as exported, its banner ("AS EXPORTED" with
   its figures) and the quality-against-flexion plot;
-- docs/images/gui-ligaments.png: ligament stretch at 90° and the length-vs-flexion plot.
+- docs/images/gui-ligaments.png: ligament stretch at 90° and the length-vs-flexion plot;
+- docs/images/gui-tet-collapse60.png: the tetrahedral demo leg (``kneegui demo --element-type
+  tet``) at 60° as exported, coloured by tet collapse (skin hidden, lateral half cut away)
+  with the Quality panel (``--tet-only`` writes this one alone).
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--outdir", type=Path, default=ROOT / "docs" / "images")
     parser.add_argument("--elements", type=int, default=None)
+    parser.add_argument("--tet-only", action="store_true", help="only the tet heat-map shot")
     args = parser.parse_args(argv)
     os.environ.setdefault("QT_API", "pyside6")
     from PySide6.QtCore import QSettings
@@ -63,6 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="kneegui-shots-"))
     QSettings.setPath(QSettings.Format.IniFormat, QSettings.Scope.UserScope, str(tmp))
     app = QApplication.instance() or QApplication([])
+    args.outdir.mkdir(parents=True, exist_ok=True)
+    if args.tet_only:
+        print(_tet_heatmap_shot(app, args.outdir, tmp))
+        return 0
     deck, setup = demo_files(args.elements or DEFAULT_DEMO_ELEMENTS, cache_dir=tmp / "cache")
     window = MainWindow()
     window.resize(1500, 920)
@@ -146,9 +154,47 @@ def main(argv: list[str] | None = None) -> int:
     _pump(app, 0.5)
     out3 = window.save_screenshot(args.outdir / "gui-ligaments.png")
     window.close()
-    for out in (out1, out2, out2b, out3):
+    out4 = _tet_heatmap_shot(app, args.outdir, tmp)
+    for out in (out1, out2, out2b, out3, out4):
         print(out)
     return 0
+
+
+def _tet_heatmap_shot(app, outdir: Path, tmp: Path) -> Path:
+    """The tetrahedral demo leg at 60 deg as exported, coloured by tet collapse (the measure
+    the window offers first on a tet model), skin hidden, lateral half cut away."""
+    from app.demo import demo_files
+    from app.main_window import MainWindow
+
+    deck, setup = demo_files(2000, cache_dir=tmp / "cache", element_type="tet")
+    window = MainWindow()
+    window.resize(1500, 920)
+    window.show()
+    window.open_deck(deck, setup)
+    _wait(app, window)
+    ws, vp = window.ws, window.viewport
+    window.flexion_panel.slider.setValue(600)
+    ws.settle_flexion()  # the release: the export of 60 deg is shown
+    _wait(app, window)
+    skin = set(ws.setup_dict["roles"].get("skin", []))
+    for pid in vp.actors:
+        ws.set_part_visible(pid, pid not in skin)
+    window.docks["Quality"].raise_()
+    qp = window.quality_panel
+    qp.mode.setCurrentIndex(qp.mode.findData("quality"))
+    qp.metric.setCurrentIndex(qp.metric.findData("tet_collapse"))
+    qp.clip_side.setCurrentText("lateral")
+    qp.clip_on.setChecked(True)
+    vp.flush()
+    vp.camera_preset("lateral")
+    vp.plotter.camera.zoom(1.1)
+    qp.refresh()
+    _pump(app, 0.5)
+    if ws.view_kind != "as exported":
+        raise RuntimeError(f"the tet demo's export at 60 deg is not shown: {window.last_error}")
+    out = window.save_screenshot(outdir / "gui-tet-collapse60.png")
+    window.close()
+    return out
 
 
 if __name__ == "__main__":

@@ -226,3 +226,24 @@ def test_status_line_of_an_export_whose_smoother_had_nothing_to_move():
         "warnings": [],
     }
     assert app.smoothing.status_line(report) == "smoothed: nothing to move"
+
+
+def test_status_line_quotes_the_tet_collapse_and_the_jacobian_where_it_says_something():
+    quality = {
+        "free_nodes": 10,
+        "worst_before": 1.0,
+        "worst_after": 1.0,
+        "collapse_worst_before": 0.05,
+        "collapse_worst_after": 0.11,
+    }
+    relax = {"free_nodes": 20, "inverted_corners_before": 3, "inverted_corners_after": 0}
+    report = {"relaxation": {**relax, "seconds": 1.0, "quality": quality}, "smoothing": None}
+    tets_only = app.smoothing.status_line(report, jacobian=False)
+    assert "quality optimised: worst tet collapse 0.050 -> 0.110," in tets_only
+    assert "Jacobian" not in tets_only
+    mixed = app.smoothing.status_line(report, jacobian=True)
+    assert "worst tet collapse 0.050 -> 0.110, worst Jacobian 1.000 -> 1.000" in mixed
+    quality.update(collapse_worst_before=None, collapse_worst_after=None)  # no tets
+    assert "quality optimised: worst Jacobian 1.000 -> 1.000," in app.smoothing.status_line(
+        report, jacobian=False
+    )
