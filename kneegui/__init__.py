@@ -4,6 +4,9 @@ The engine uses numpy and scipy only; it never imports Qt, VTK or pyvista (the G
 ``app``).
 """
 
+# first, before numpy is loaded: the same kernels on every x86-64 machine
+import kneegui.reproducible  # noqa: F401
+
 from kneegui.errors import DeckError, GeometryError, KneeguiError, SetupError
 from kneegui.model import ElementBlock, Model, Part
 from kneegui.topology import ELEMENT_TYPES

@@ -6,6 +6,8 @@ in docs/kinematics.md). Each row carries its source.
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import csv
 from pathlib import Path
 

@@ -10,6 +10,8 @@ Each run replaces only its own section. Every number is measured here.
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 import json
 import os

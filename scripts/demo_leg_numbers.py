@@ -9,6 +9,8 @@ sets, the flexion measured from the setup's landmarks, knee width and skin girth
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 import time
 from pathlib import Path

@@ -7,6 +7,8 @@ time taken. docs/kinematics.md quotes its output.
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 import json
 import time

@@ -9,6 +9,8 @@ showing the condyle arc, menisci, cruciate ligaments, patella and tendon).
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 from pathlib import Path
 

@@ -18,6 +18,8 @@ the default demo leg and saves:
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 import os
 import sys

@@ -9,6 +9,8 @@ docs/repositioning.md (known limits, element volume) come from this script.
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 import dataclasses
 import time

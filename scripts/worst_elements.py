@@ -11,6 +11,8 @@ skin contours cross and how many interior tissue nodes are deeper than 0.5 mm in
 
 from __future__ import annotations
 
+import kneegui.reproducible  # noqa: F401  (before numpy: the same kernels on every machine)
+
 import argparse
 
 import numpy as np

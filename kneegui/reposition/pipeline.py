@@ -7,6 +7,8 @@ solve the bones and word the warnings the same way.
 
 from __future__ import annotations
 
+from kneegui.reproducible import dispatch_state
+
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -310,6 +312,7 @@ def pose_model(
             "overlap": [o.to_dict() for o in overlaps if o.depth > 0 or o.rest_depth > 0],
         },
         "warnings": warnings,
+        "numerics": dispatch_state(),
         "timings_s": {**{f"pose_{k}": v for k, v in result.timings_s.items()}, **timings},
     }
     report_progress(1.0, "done")
