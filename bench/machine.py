@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from kneegui.reproducible import dispatch_state
+
 import os
 import platform
 
@@ -9,8 +11,9 @@ import numpy as np
 import scipy
 
 
-def machine_description() -> dict[str, str | int]:
-    """CPU model, core count, memory, Python and library versions."""
+def machine_description() -> dict[str, object]:
+    """CPU model, core count, memory, Python and library versions, and the numerical kernels
+    in use (:func:`kneegui.reproducible.dispatch_state`)."""
     cpu = platform.processor() or "unknown"
     try:
         with open("/proc/cpuinfo") as fh:
@@ -34,4 +37,5 @@ def machine_description() -> dict[str, str | int]:
         "numpy": np.__version__,
         "scipy": scipy.__version__,
         "os": platform.platform(),
+        "numerics": dispatch_state(),
     }
