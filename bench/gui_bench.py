@@ -28,6 +28,8 @@ from bench.machine import machine_description
 ROOT = Path(__file__).resolve().parent.parent
 TARGET_UPDATES_PER_S = 30.0
 REST_ANGLE_DEG = 90.0
+#: What follows this line in the Markdown file is kept when a run rewrites the file.
+NOTES_MARKER = "<!-- notes: kept when python -m bench.gui_bench rewrites this file -->"
 
 
 def _wait_until(app, done, timeout_s: float = 120.0) -> None:
@@ -382,7 +384,12 @@ def write_markdown(result: dict, path: Path) -> None:
         "after the run (other work on the same cores slows every figure down).",
         "",
     ]
-    path.write_text("\n".join(lines), encoding="utf-8")
+    text = "\n".join(lines)
+    # hand-written notes after the marker survive a new run
+    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    if NOTES_MARKER in old:
+        text += "\n" + old[old.index(NOTES_MARKER) :]
+    path.write_text(text, encoding="utf-8")
 
 
 def main(argv: list[str] | None = None) -> int:
