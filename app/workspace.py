@@ -32,6 +32,7 @@ from kneegui.io.atomic import atomic_write_text
 from kneegui.ligaments import Ligament, length_curve, ligament_fibres
 from kneegui.model import Model
 from kneegui.quality import QualityEvaluator, QualityResult, volume_change_pct
+from kneegui.quality.metrics import ONLY_METRICS
 from kneegui.setup import ROLES, JointSetup, load_setup
 from kneegui.setup.kinematic_tables import VALIDATED_FLEXION_DEG
 from kneegui.topology import SOLID_TYPES
@@ -647,10 +648,10 @@ class Workspace(QObject):
         cells, rows, evaluator = self._live_cells, self._live_rows, self._evaluator
         if cells is None or rows is None or evaluator is None or self.model is None:
             return None
-        # a Jacobian or tet-collapse heat-map needs that measure alone (bit-identical, a third
-        # or a sixth of the cost); the others measure everything
+        # a heat-map of the Jacobian or of a tet measure needs that measure alone (bit-identical,
+        # a third to two thirds of the cost); the others measure everything
         only = None
-        if self.colour_mode == "quality" and self.metric in ("jacobian", "tet_collapse"):
+        if self.colour_mode == "quality" and HEATMAP_METRICS[self.metric][1] in ONLY_METRICS:
             only = HEATMAP_METRICS[self.metric][1]
         return lambda coords: (cells, evaluator.evaluate(coords, rows, only=only))
 

@@ -545,6 +545,18 @@ def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     return out
 
 
+def tet_measures_only(p: Sequence[Vec]) -> dict[str, Arr]:
+    """The tetrahedral shape measures (:data:`TET_METRICS`) alone, bit-identical to those of
+    :func:`tet4_quality` (the same operations on the same arrays), without the faces' aspect,
+    warpage and skew: for a heat-map of a dihedral angle or the volumetric skew redrawn with
+    every slider pose. Component-major corner positions."""
+    e01, e02, e03 = p[1] - p[0], p[2] - p[0], p[3] - p[0]
+    six_volume = _triple(e01, e02, e03)
+    s01, s02, s03 = _sq(e01), _sq(e02), _sq(e03)
+    s12, s13, s23 = _sq(p[2] - p[1]), _sq(p[3] - p[1]), _sq(p[3] - p[2])
+    return tet_shape_measures(p, six_volume, (s01, s02, s03, s12, s13, s23))
+
+
 def midside_offsets(p: Sequence[Vec]) -> dict[str, Arr]:
     """Mid-side-node offsets of 10-node tets, OptiStruct's "hoe" offsets of a 3-node edge.
 

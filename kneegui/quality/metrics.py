@@ -24,6 +24,7 @@ from kneegui.quality.kernels import (
     TET_METRICS,
     corner_jacobian_only,
     tet_collapse_only,
+    tet_measures_only,
 )
 
 #: Metric arrays every :class:`ElementQuality` holds, in display order.
@@ -41,7 +42,7 @@ TET_ONLY_METRICS: tuple[str, ...] = TET_METRICS + TET10_METRICS
 #: Element types that have quality metrics (lines and springs have none).
 MEASURED_TYPES: tuple[str, ...] = tuple(KERNELS)
 #: The metrics :meth:`QualityEvaluator.evaluate` can measure alone (``only=``).
-ONLY_METRICS: tuple[str, ...] = ("jacobian_corner", "tet_collapse")
+ONLY_METRICS: tuple[str, ...] = ("jacobian_corner", *TET_METRICS)
 
 _CHUNK = 8192  # elements per kernel call: keeps the temporaries in cache
 _PARALLEL_MIN = 4 * _CHUNK
@@ -204,12 +205,14 @@ class QualityEvaluator:
         rows : mapping of str to array_like of int, optional
             Evaluate only these rows of each block (types not named are skipped). Default:
             every element.
-        only : {"jacobian_corner", "tet_collapse"}, optional
-            Measure this one metric (and the corner Jacobian, which says what is inverted)
-            alone, bit-identical to the full evaluation's, for a heat-map redrawn with every
-            slider pose: about a third of the cost for the Jacobian, a sixth for the tet
-            collapse. The other metrics of the result are NaN and marked as not measured (a
-            type without the metric, a hex for the tet collapse, has it NaN as always).
+        only : str, optional
+            One of :data:`ONLY_METRICS`: measure this metric (and the corner Jacobian, which
+            says what is inverted) alone, bit-identical to the full evaluation's, for a
+            heat-map redrawn with every slider pose: about a third of the cost for the
+            Jacobian, a sixth for the tet collapse, two thirds for the other tet measures
+            (measured together: a tet's result then has all of :data:`TET_METRICS`). The
+            other metrics of the result are NaN and marked as not measured (a type without
+            the metric, a hex for a tet measure, has it NaN as always).
 
         Returns
         -------
@@ -242,8 +245,8 @@ class QualityEvaluator:
                     rows=sel,
                     inverted=jac <= 0.0,
                     **{k: values.get(k, np.full(len(sel), np.nan)) for k in METRICS},
-                    tet_collapse=values.get("tet_collapse"),
-                    measured=tuple(dict.fromkeys(("jacobian_corner", only))),
+                    **{k: values.get(k) for k in TET_METRICS},
+                    measured=tuple(dict.fromkeys(("jacobian_corner", only, *values))),
                 )
                 continue
             values = self._run(etype, xyz, xyz_t, sub)
@@ -267,11 +270,15 @@ class QualityEvaluator:
             names: tuple[str, ...] = ("jacobian_corner",)
             if only == "tet_collapse" and tets:
                 names = ("jacobian_corner", "tet_collapse")
+            elif only in TET_METRICS and tets:
+                names = ("jacobian_corner", *TET_METRICS)
 
             def kernel(pts):
                 out = {"jacobian_corner": corner_jacobian_only(pts, etype)}
-                if len(names) > 1:
+                if names[1:] == ("tet_collapse",):
                     out["tet_collapse"] = tet_collapse_only(pts)
+                elif len(names) > 1:
+                    out.update(tet_measures_only(pts))
                 return out
 
         else:

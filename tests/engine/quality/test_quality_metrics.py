@@ -9,6 +9,7 @@ import pytest
 
 from kneegui.model import ElementBlock
 from kneegui.quality import QualityEvaluator, compute_quality
+from kneegui.quality.metrics import ONLY_METRICS
 from kneegui.topology import SOLID_FACES, split_degenerate_solids
 
 UNIT_CUBE = np.array(
@@ -345,7 +346,7 @@ def test_beams_and_springs_are_not_measured():
     assert compute_quality(pts, blocks).n_elements == 0
 
 
-@pytest.mark.parametrize("only", ["jacobian_corner", "tet_collapse"])
+@pytest.mark.parametrize("only", ONLY_METRICS)
 def test_single_metric_evaluation_is_bit_identical_to_the_full_one(only):
     # a heat-map redrawn with every slider pose measures its metric alone (and the Jacobian,
     # which says what is inverted); the values must be the full evaluation's exactly, on fair,
@@ -375,6 +376,10 @@ def test_single_metric_evaluation_is_bit_identical_to_the_full_one(only):
             np.testing.assert_array_equal(fast[etype].jacobian_corner, full[etype].jacobian_corner)
             np.testing.assert_array_equal(fast[etype].inverted, full[etype].inverted)
             np.testing.assert_array_equal(fast[etype].metric(only), full[etype].metric(only))
+            for measured in fast[etype].measured:  # what comes with it (the other tet measures)
+                np.testing.assert_array_equal(
+                    fast[etype].metric(measured), full[etype].metric(measured)
+                )
             assert fast[etype].has("jacobian") and not fast[etype].has("aspect")
             assert fast[etype].has(only) == full[etype].has(only)
             with pytest.raises(ValueError, match="not measured"):
