@@ -39,7 +39,8 @@ from PySide6.QtWidgets import (
 )
 
 from app.colors import ROLE_COLOURS, UNASSIGNED_COLOUR
-from app.workspace import FLEXION_RANGE, HEATMAP_METRICS, Workspace
+from app.heatmaps import HEATMAP_METRICS, has_tets, jacobian_says_something
+from app.workspace import FLEXION_RANGE, Workspace
 from kneegui.setup import ROLES
 
 SLIDER_STEPS_PER_DEGREE = 10
@@ -717,13 +718,9 @@ class QualityCurvePanel(QWidget):
     def plotted(self) -> tuple[tuple[str, str, str], ...]:
         """The :data:`SERIES` that say something on the open model: the tet collapse with
         tets, the Jacobian with hexes, wedges, pyramids or quads (or with neither)."""
-        from app.preview import jacobian_says_something
-
         model = self.ws.model
-        tets = model is not None and any(
-            len(b) for t, b in model.blocks.items() if t in ("tet4", "tet10")
-        )
-        jacobian = model is None or jacobian_says_something(model) or not tets
+        tets = has_tets(model)
+        jacobian = jacobian_says_something(model) or not tets
         keep = {"worst_tet_collapse": tets, "worst_jacobian": jacobian}
         return tuple(entry for entry in self.SERIES if keep.get(entry[0], True))
 

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PySide6.QtCore import QObject, QTimer, Signal
 
+from app.heatmaps import jacobian_says_something
 from app.tasks import TaskRunner
 from kneegui.errors import Cancelled
 from kneegui.model import Model
@@ -101,16 +102,6 @@ class PoseFigures:
             parts.append(f"worst Jacobian {self.worst_jacobian:.3f}")
         parts.append(f"largest volume change {self.max_volume_change_pct:+.1f} %")
         return " · ".join(parts)
-
-
-def jacobian_says_something(model: Model) -> bool:
-    """Whether ``model`` has elements whose corner Jacobian is more than its sign (see
-    :attr:`PoseFigures.jacobian_says_something`)."""
-    return any(len(block) for etype, block in model.blocks.items() if etype in JACOBIAN_TYPES)
-
-
-#: Element types whose corner Jacobian varies with their shape (a tet's or a triangle's is 1).
-JACOBIAN_TYPES = ("hex8", "wedge6", "pyramid5", "quad4")
 
 
 def pose_figures(model: Model, quality: QualityResult, initial: QualityResult) -> PoseFigures:

@@ -32,7 +32,7 @@ def smooth_current(
 ) -> SmoothingOutcome:
     """Pose, relax and smooth the model at ``flexion_deg`` exactly as ``kneegui pose`` does
     (:func:`kneegui.reposition.pipeline.pose_model`), with a status line built from its report."""
-    from app.preview import jacobian_says_something
+    from app.heatmaps import jacobian_says_something
 
     posed = pose_model(repositioner, flexion_deg, progress=progress, cancel=cancelled)
     message = status_line(posed.report, jacobian_says_something(posed.model))

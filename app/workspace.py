@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from PySide6.QtCore import QObject, QTimer, Signal
 
 from app.autosave import AUTOSAVE_DELAY_MS, autosave_path
+from app.heatmaps import HEATMAP_METRICS, heatmap_metrics
 from app.poser import Poser, make_poser
 from app.preview import ExportedPose, ExportPreview, PoseFigures, pose_figures
 from kneegui.errors import GeometryError, KneeguiError, SetupError
@@ -40,23 +41,6 @@ from kneegui.topology import SOLID_TYPES
 #: Slider range (degrees): the engine's validated flexion range (see its definition for why
 #: it is narrower than the supported one).
 FLEXION_RANGE = VALIDATED_FLEXION_DEG
-#: Heat-map metrics: key -> (label, QualityResult metric name, "low is bad" flag). Which of
-#: them a model offers, and in what order, is :func:`heatmap_metrics`.
-HEATMAP_METRICS: dict[str, tuple[str, str, bool]] = {
-    "jacobian": ("Jacobian", "jacobian_corner", True),
-    "tet_collapse": ("Tet collapse", "tet_collapse", True),
-    "dihedral_min": ("Tet min dihedral (°)", "dihedral_min", True),
-    "dihedral_max": ("Tet max dihedral (°)", "dihedral_max", False),
-    "vol_skew": ("Tet volumetric skew", "vol_skew", False),
-    "midside_tangent": ("Tet10 mid-side offset", "midside_tangent", False),
-    "aspect": ("Aspect ratio", "aspect", False),
-    "warpage": ("Warpage (°)", "warpage", False),
-    "skew": ("Skew (°)", "skew", False),
-    "volume_change": ("Volume change, solids (%)", "volume_change", False),
-    "area_change": ("Area change, shells (%)", "area_change", False),
-}
-#: Heat-map metrics of tetrahedra only.
-TET_HEATMAPS = ("tet_collapse", "dihedral_min", "dihedral_max", "vol_skew")
 
 
 def _measured(quality: QualityResult, metric: str) -> bool:
@@ -65,29 +49,6 @@ def _measured(quality: QualityResult, metric: str) -> bool:
         metric, HEATMAP_METRICS[metric][1]
     )
     return all(q.measured is None or key in q.measured for q in quality.by_type.values())
-
-
-def heatmap_metrics(model: Model | None) -> list[str]:
-    """The heat-map metrics that say something on ``model``, most telling first.
-
-    A tet's corner Jacobian is 1 by definition, so the Jacobian is offered only with hexes,
-    wedges, pyramids or quad shells; the tet measures only with tets. On a model whose solids
-    are all tets the tet measures come first, otherwise the Jacobian does. Warpage needs quad
-    faces; volume change is offered with solids, area change with shells.
-    """
-    types = {t for t, b in model.blocks.items() if len(b)} if model is not None else set()
-    tets = bool(types & {"tet4", "tet10"})
-    other_solids = bool(types & {"hex8", "wedge6", "pyramid5"})
-    quads = other_solids or "quad4" in types
-    jacobian = ["jacobian"] if quads else []
-    tet_keys = [*TET_HEATMAPS, *(["midside_tangent"] if "tet10" in types else [])] if tets else []
-    keys = tet_keys + jacobian if tets and not other_solids else jacobian + tet_keys
-    keys += ["aspect", *(["warpage"] if quads else []), "skew"]
-    if tets or other_solids:
-        keys.append("volume_change")
-    if types & {"quad4", "tri3"}:
-        keys.append("area_change")
-    return keys
 
 
 #: Default threshold per metric (from resources/quality_thresholds.csv "warn" where it exists).

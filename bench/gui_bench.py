@@ -287,28 +287,30 @@ def run(
     return out
 
 
+#: The default demo's variant (element type, joint): its results keep the plain file names.
+DEFAULT_VARIANT = ("hex", "sliding")
+
+
+def variant_suffix(element_type: str, joint: str) -> str:
+    """``""`` for the default demo, else ``"-tet-sliding"`` etc. (result and page names)."""
+    return "" if (element_type, joint) == DEFAULT_VARIANT else f"-{element_type}-{joint}"
+
+
 def _variant(result: dict) -> tuple[str, str]:
-    v = result.get("demo_variant") or {"element_type": "hex", "joint": "sliding"}
-    return v["element_type"], v["joint"]
+    v = result.get("demo_variant")
+    return (v["element_type"], v["joint"]) if v else DEFAULT_VARIANT
 
 
 def _variant_flags(result: dict) -> str:
     element_type, joint = _variant(result)
-    if (element_type, joint) == ("hex", "sliding"):
+    if (element_type, joint) == DEFAULT_VARIANT:
         return ""
     return f"with `--element-type {element_type} --joint {joint}` "
 
 
-def _json_name(result: dict) -> str:
-    element_type, joint = _variant(result)
-    if (element_type, joint) == ("hex", "sliding"):
-        return "gui.json"
-    return f"gui-{element_type}-{joint}.json"
-
-
 def _variant_words(result: dict) -> str:
     element_type, joint = _variant(result)
-    if (element_type, joint) == ("hex", "sliding"):
+    if (element_type, joint) == DEFAULT_VARIANT:
         return "the default demo leg"
     return f"the demo leg's {element_type} variant ({joint} joint)"
 
@@ -325,7 +327,8 @@ def write_markdown(result: dict, path: Path) -> None:
         "# GUI slider benchmark",
         "",
         'Produced by `xvfb-run -a -s "-screen 0 1600x1000x24" python -m bench.gui_bench` '
-        f"{_variant_flags(result)}(bench/results/{_json_name(result)}). The real main window on "
+        f"{_variant_flags(result)}(bench/results/gui{variant_suffix(*_variant(result))}.json). "
+        "The real main window on "
         f"{_variant_words(result)} ({m['nodes']} nodes, {m['elements']} elements: "
         f"{_type_counts(m)}; {m['parts']} parts); the flexion slider "
         f"is moved over the whole range (-5° to 140°) in {r0['slider_positions']} positions, "
@@ -414,11 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="default bench/results/gui.json")
     parser.add_argument("--markdown", type=Path, default=None, help="default docs/gui-benchmark.md")
     args = parser.parse_args(argv)
-    variant = (
-        ""
-        if (args.element_type, args.joint) == ("hex", "sliding")
-        else (f"-{args.element_type}-{args.joint}")
-    )
+    variant = variant_suffix(args.element_type, args.joint)
     args.out = args.out or ROOT / "bench" / "results" / f"gui{variant}.json"
     args.markdown = args.markdown or ROOT / "docs" / f"gui-benchmark{variant}.md"
     result = run(

@@ -110,20 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     _wait(app, window)
     window.guard(ws.smooth)
     _wait(app, window)
-    skin = set(roles.get("skin", []))
-    for pid in vp.actors:
-        ws.set_part_visible(pid, pid not in skin)
-    window.docks["Quality"].raise_()
-    qp = window.quality_panel
-    qp.mode.setCurrentIndex(qp.mode.findData("quality"))
-    qp.metric.setCurrentIndex(qp.metric.findData("jacobian"))
-    qp.clip_side.setCurrentText("lateral")
-    qp.clip_on.setChecked(True)
-    vp.flush()
-    vp.camera_preset("lateral")
-    vp.plotter.camera.zoom(1.1)
-    qp.refresh()
-    _pump(app, 0.5)
+    qp = _cut_away_heatmap(app, window, "jacobian")
     out2 = window.save_screenshot(args.outdir / "gui-flexion90-jacobian.png")
 
     # 2b. the same pose as exported: the banner and the quality-against-flexion plot
@@ -162,6 +149,27 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _cut_away_heatmap(app, window, metric: str):
+    """Skin hidden, the Quality panel's heat-map of ``metric``, the lateral half cut away, a
+    lateral view; returns the Quality panel."""
+    ws, vp = window.ws, window.viewport
+    skin = set(ws.setup_dict["roles"].get("skin", []))
+    for pid in vp.actors:
+        ws.set_part_visible(pid, pid not in skin)
+    window.docks["Quality"].raise_()
+    qp = window.quality_panel
+    qp.mode.setCurrentIndex(qp.mode.findData("quality"))
+    qp.metric.setCurrentIndex(qp.metric.findData(metric))
+    qp.clip_side.setCurrentText("lateral")
+    qp.clip_on.setChecked(True)
+    vp.flush()
+    vp.camera_preset("lateral")
+    vp.plotter.camera.zoom(1.1)
+    qp.refresh()
+    _pump(app, 0.5)
+    return qp
+
+
 def _tet_heatmap_shot(app, outdir: Path, tmp: Path) -> Path:
     """The tetrahedral demo leg at 60 deg as exported, coloured by tet collapse (the measure
     the window offers first on a tet model), skin hidden, lateral half cut away."""
@@ -174,24 +182,11 @@ def _tet_heatmap_shot(app, outdir: Path, tmp: Path) -> Path:
     window.show()
     window.open_deck(deck, setup)
     _wait(app, window)
-    ws, vp = window.ws, window.viewport
+    ws = window.ws
     window.flexion_panel.slider.setValue(600)
     ws.settle_flexion()  # the release: the export of 60 deg is shown
     _wait(app, window)
-    skin = set(ws.setup_dict["roles"].get("skin", []))
-    for pid in vp.actors:
-        ws.set_part_visible(pid, pid not in skin)
-    window.docks["Quality"].raise_()
-    qp = window.quality_panel
-    qp.mode.setCurrentIndex(qp.mode.findData("quality"))
-    qp.metric.setCurrentIndex(qp.metric.findData("tet_collapse"))
-    qp.clip_side.setCurrentText("lateral")
-    qp.clip_on.setChecked(True)
-    vp.flush()
-    vp.camera_preset("lateral")
-    vp.plotter.camera.zoom(1.1)
-    qp.refresh()
-    _pump(app, 0.5)
+    _cut_away_heatmap(app, window, "tet_collapse")
     if ws.view_kind != "as exported":
         raise RuntimeError(f"the tet demo's export at 60 deg is not shown: {window.last_error}")
     out = window.save_screenshot(outdir / "gui-tet-collapse60.png")

@@ -522,6 +522,14 @@ def tet_shape_measures(p: Sequence[Vec], six_volume: Arr, edge_sq: Sequence[Arr]
     }
 
 
+def _tet_volume_and_edges(p: Sequence[Vec]) -> tuple[Arr, tuple[Arr, ...]]:
+    """Six times the signed volume and the squared edge lengths (01, 02, 03, 12, 13, 23)."""
+    e01, e02, e03 = p[1] - p[0], p[2] - p[0], p[3] - p[0]
+    six_volume = _triple(e01, e02, e03)
+    edge_sq = (_sq(e01), _sq(e02), _sq(e03), _sq(p[2] - p[1]), _sq(p[3] - p[1]), _sq(p[3] - p[2]))
+    return six_volume, edge_sq
+
+
 def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     """Metrics of linear tetrahedra (triangle 0,1,2 counter-clockwise seen from apex 3).
 
@@ -529,19 +537,17 @@ def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     tetrahedral measures of :func:`tet_shape_measures` are added.
     """
     m = p[0].shape[1]
-    e01, e02, e03 = p[1] - p[0], p[2] - p[0], p[3] - p[0]
-    six_volume = _triple(e01, e02, e03)
+    six_volume, edge_sq = _tet_volume_and_edges(p)
+    s01, s02, s03, s12, s13, s23 = edge_sq
     volume = six_volume / 6.0
     jac = np.where(volume > 0.0, 1.0, -1.0)
-    s01, s02, s03 = _sq(e01), _sq(e02), _sq(e03)
-    s12, s13, s23 = _sq(p[2] - p[1]), _sq(p[3] - p[1]), _sq(p[3] - p[2])
     acc = _FaceAccumulator(m)
     acc.add_tri((s01, s12, s02))
     acc.add_tri((s01, s13, s03))
     acc.add_tri((s12, s23, s13))
     acc.add_tri((s02, s23, s03))
     out = _result(acc, jac, jac.copy(), volume)
-    out.update(tet_shape_measures(p, six_volume, (s01, s02, s03, s12, s13, s23)))
+    out.update(tet_shape_measures(p, six_volume, edge_sq))
     return out
 
 
@@ -550,11 +556,7 @@ def tet_measures_only(p: Sequence[Vec]) -> dict[str, Arr]:
     :func:`tet4_quality` (the same operations on the same arrays), without the faces' aspect,
     warpage and skew: for a heat-map of a dihedral angle or the volumetric skew redrawn with
     every slider pose. Component-major corner positions."""
-    e01, e02, e03 = p[1] - p[0], p[2] - p[0], p[3] - p[0]
-    six_volume = _triple(e01, e02, e03)
-    s01, s02, s03 = _sq(e01), _sq(e02), _sq(e03)
-    s12, s13, s23 = _sq(p[2] - p[1]), _sq(p[3] - p[1]), _sq(p[3] - p[2])
-    return tet_shape_measures(p, six_volume, (s01, s02, s03, s12, s13, s23))
+    return tet_shape_measures(p, *_tet_volume_and_edges(p))
 
 
 def midside_offsets(p: Sequence[Vec]) -> dict[str, Arr]:

@@ -267,19 +267,19 @@ class QualityEvaluator:
             tets = etype in ("tet4", "tet10")
             if etype == "tet10":
                 conn = conn[:, :4]  # the corner tetrahedron
+            # a tet measure of a tet: the collapse alone, or the shape measures together
+            extra = None
+            if tets and only == "tet_collapse":
+                extra = lambda pts: {"tet_collapse": tet_collapse_only(pts)}  # noqa: E731
+            elif tets and only in TET_METRICS:
+                extra = tet_measures_only
             names: tuple[str, ...] = ("jacobian_corner",)
-            if only == "tet_collapse" and tets:
-                names = ("jacobian_corner", "tet_collapse")
-            elif only in TET_METRICS and tets:
-                names = ("jacobian_corner", *TET_METRICS)
+            if extra is not None:
+                names += ("tet_collapse",) if only == "tet_collapse" else TET_METRICS
 
             def kernel(pts):
                 out = {"jacobian_corner": corner_jacobian_only(pts, etype)}
-                if names[1:] == ("tet_collapse",):
-                    out["tet_collapse"] = tet_collapse_only(pts)
-                elif len(names) > 1:
-                    out.update(tet_measures_only(pts))
-                return out
+                return out if extra is None else {**out, **extra(pts)}
 
         else:
             kernel = KERNELS[etype][0]
