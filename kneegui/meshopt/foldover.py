@@ -84,7 +84,9 @@ class RelaxOptions:
         Penalty stiffness of the bone contact, relative to the elastic stiffness of a node:
         final, and while elements are still inverted. A stiff contact during untangling
         crushes the tissue pinched between two bones; once nothing is inverted the barrier
-        keeps every element valid and the stiffness is raised 4x per round to the final one.
+        keeps every element valid and the next round runs at the final stiffness. (Raised 4x
+        per round instead, the 20k demo at 90 deg spent three rounds of its seven, 450 of 1,050
+        iterations, on the way up, for the same worst Jacobian.)
     contact_force_depth : float
         Depth (model units) beyond which the contact force stops growing.
     contact_band : float

@@ -756,7 +756,7 @@ class ElasticRelaxation:
                     break  # untangled: the quality optimisation takes it from here
                 rnd_untangled = d_min > 0 and eps <= 1e-9
                 if d_min > 0:
-                    stiffness = min(4.0 * stiffness, opt.contact_stiffness)
+                    stiffness = opt.contact_stiffness
         x[sub.nodes] = xl
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))

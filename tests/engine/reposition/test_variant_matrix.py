@@ -177,14 +177,15 @@ KNOWN_MISSES = {
     },
     ("welded", 90.0, "quality"): "worst corner Jacobian below zero (inverted elements)",
     ("hex-flexed0", 90.0, "export"): "95th percentile of the soft solids' volume change "
-    "24.9 % against the 25 % bound with the pinned kernels, 25.3 % with this machine's AVX-512 "
-    "ones: within a last-bit path of the bound, so not asserted (issue 23, items 4 and 6)",
+    "24.996 % against the 25 % bound with the pinned kernels (24.9 % before the contact went to "
+    "full stiffness in one round), 25.3 % with this machine's AVX-512 ones: within a last-bit "
+    "path of the bound, so not asserted (issue 23, items 4 and 6)",
     ("mixed", 90.0, "quality"): "worst hex corner Jacobian 0.397 against the initial 0.428 "
-    "(tet collapse 0.102 against 0.108)",
-    ("tet", 90.0, "quality"): "worst tet collapse 0.1064 against the initial 0.1082, min dihedral "
-    "6.0 against 6.9 deg, tet aspect 20.4 against 13.5 (coarse tet demo, 4 December, pinned "
+    "(tet collapse 0.106 against 0.108)",
+    ("tet", 90.0, "quality"): "worst tet collapse 0.1063 against the initial 0.1082, min dihedral "
+    "6.1 against 6.9 deg, tet aspect 20.4 against 13.5 (coarse tet demo, 4 December, pinned "
     "kernels; docs/repositioning.md, known limits)",
-    ("tet10", 90.0, "quality"): "corner-tet collapse 0.1067 against 0.1082, min dihedral 6.1 "
+    ("tet10", 90.0, "quality"): "corner-tet collapse 0.1075 against 0.1082, min dihedral 6.2 "
     "against 6.9 deg, tet aspect 19.5 against 13.5, mid-side offsets up to 1.35 edge lengths "
     "against 0 (coarse 10-node tet demo, 4 December, pinned kernels)",
     ("hex-flexed20", 120.0, "export"): "5 movable elements inverted and 169 soft-tissue nodes "
