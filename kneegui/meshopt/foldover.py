@@ -100,7 +100,8 @@ class RelaxOptions:
         ``max_rounds``: the nodes of those corners go back to their posed positions and the
         barrier is softened to ``restart_eps`` (the schedule can drive ``eps`` to its floor
         while nodes pressed onto one point keep a corner at zero volume). The last restart
-        also frees those nodes from the bone contact.
+        also frees those nodes from the bone contact. Every restart lets the sliding skin
+        nodes among them off their tangent planes.
     restart_eps : float
         ``eps`` a restart begins with.
     slide_skin : bool or None
@@ -166,6 +167,7 @@ class RelaxReport:
     rounds: int = 0
     restarts: int = 0
     contact_released: int = 0
+    sliding_released: int = 0  # sliding skin nodes a restart let off their tangent planes
     iterations: int = 0
     evaluations: int = 0
     min_det_before: float = float("nan")

@@ -700,6 +700,13 @@ class ElasticRelaxation:
                 # back where the pose had them and start again from a soft barrier
                 stuck = self._stuck_nodes(sub, det)
                 xl[stuck] = xl_start[stuck]
+                # a sliding skin node cannot leave its tangent plane, so the tissue pressed
+                # against it from inside (by a bone, or pinched in a crease) has nowhere to go:
+                # the stuck ones may now move off their plane
+                releasing = np.isin(sub.free[sliding[0]], stuck)
+                if releasing.any():
+                    sliding = (sliding[0][~releasing], sliding[1][~releasing])
+                    report.sliding_released += int(releasing.sum())
                 if attempt == opt.restarts:
                     # last chance: where bone contact presses the tissue flat (tissue pinched
                     # between femur and tibia at deep flexion) a valid element matters more

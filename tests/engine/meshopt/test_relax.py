@@ -332,3 +332,33 @@ def test_midside_nodes_inside_a_bone_go_back_to_its_surface():
     posed[9] = [0.2, -0.5, 0.3]
     out = relax.midside_out_of_bones(posed, {"femur": turn})
     assert turn.inverse().apply(out[9:10])[0, 0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_restart_lets_stuck_skin_nodes_off_their_tangent_planes():
+    """Tissue pushed out through the skin (here an interior node held above the top face) can
+    only be undone by the skin moving out of its tangent plane: the skin node that sliding keeps
+    in that plane is freed by the first restart, and nothing stays inverted."""
+    coords, blocks, boundary, node = hex_block(4)
+    n = 4
+    top = np.flatnonzero(np.isclose(coords[:, 2], n * 10.0))
+    side = np.flatnonzero(((coords[:, :2] == 0) | (coords[:, :2] == n * 10.0)).any(axis=1))
+    sliding = np.setdiff1d(top, side)
+    pushed = node(2, 2, 3)
+    free = np.setdiff1d(np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding), pushed)
+    moved = coords.copy()
+    moved[pushed, 2] = n * 10.0 + 2.0  # 2 above the skin, and held there
+    solids = {"hex8": np.ones(len(blocks["hex8"].ids), bool)}
+    relax = ElasticRelaxation(
+        coords,
+        corner_tetrahedra(blocks, solids),
+        free,
+        options=RelaxOptions(max_rounds=5, restarts=1),
+        quads=blocks["quad4"].conn,
+        sliding=sliding,
+    )
+    relaxed, report = relax.relax(moved)
+    assert report.restarts == 1 and report.sliding_released >= 1
+    assert report.inverted_corners_after == 0
+    assert compute_quality(relaxed, blocks).n_inverted == 0
+    assert relaxed[node(2, 2, 4), 2] > moved[pushed, 2]  # the skin node left its plane
+    np.testing.assert_array_equal(relaxed[pushed], moved[pushed])
