@@ -43,11 +43,17 @@ from kneegui.topology import SOLID_TYPES
 FLEXION_RANGE = VALIDATED_FLEXION_DEG
 
 
-def _measured(quality: QualityResult, metric: str) -> bool:
-    """Whether every type of ``quality`` was measured for the heat-map ``metric``."""
-    key = {"volume_change": "volume", "area_change": "volume"}.get(
+def _quality_metric(metric: str) -> str:
+    """The :class:`~kneegui.quality.QualityResult` metric the heat-map ``metric`` is made of
+    (a volume or area change, of the volume)."""
+    return {"volume_change": "volume", "area_change": "volume"}.get(
         metric, HEATMAP_METRICS[metric][1]
     )
+
+
+def _measured(quality: QualityResult, metric: str) -> bool:
+    """Whether every type of ``quality`` was measured for the heat-map ``metric``."""
+    key = _quality_metric(metric)
     return all(q.measured is None or key in q.measured for q in quality.by_type.values())
 
 
@@ -609,11 +615,10 @@ class Workspace(QObject):
         cells, rows, evaluator = self._live_cells, self._live_rows, self._evaluator
         if cells is None or rows is None or evaluator is None or self.model is None:
             return None
-        # a heat-map of the Jacobian or of a tet measure needs that measure alone (bit-identical,
-        # a third to two thirds of the cost); the others measure everything
+        # a heat-map needs its measure alone (bit-identical, a sixth to two thirds of the cost)
         only = None
-        if self.colour_mode == "quality" and HEATMAP_METRICS[self.metric][1] in ONLY_METRICS:
-            only = HEATMAP_METRICS[self.metric][1]
+        if self.colour_mode == "quality" and _quality_metric(self.metric) in ONLY_METRICS:
+            only = _quality_metric(self.metric)
         return lambda coords: (cells, evaluator.evaluate(coords, rows, only=only))
 
     def request_flexion(self, degrees: float) -> None:

@@ -202,36 +202,50 @@ def corner_jacobian(points: NDArray[np.float64], etype: str) -> NDArray[np.float
 
 
 # ---------------------------------------------------------------------- face accumulators
-class _FaceAccumulator:
-    """Running worst-face values: squared aspect, min warp cosine, max skew sine."""
+#: The worst-face measures of :class:`_FaceAccumulator`.
+FACE_METRICS: tuple[str, ...] = ("aspect", "warpage", "skew")
 
-    def __init__(self, m: int):
+
+class _FaceAccumulator:
+    """Running worst-face values: squared aspect, min warp cosine, max skew sine (those of
+    ``want`` alone: each is worked out by the same operations whether the others are or not)."""
+
+    def __init__(self, m: int, want: Sequence[str] = FACE_METRICS):
+        self.want = frozenset(want)
         self.aspect_sq = np.ones(m)
         self.warp_cos = np.ones(m)
         self.skew_sin = np.zeros(m)
 
     def add_quad(self, p: Sequence[Vec], edge_sq: Sequence[Arr]) -> None:
         """Quad face p0..p3 with squared edge lengths (01, 12, 23, 30)."""
-        hi = np.maximum(np.maximum(edge_sq[0], edge_sq[1]), np.maximum(edge_sq[2], edge_sq[3]))
-        lo = np.minimum(np.minimum(edge_sq[0], edge_sq[1]), np.minimum(edge_sq[2], edge_sq[3]))
-        self._add_aspect(hi, lo)
+        if "aspect" in self.want:
+            hi = np.maximum(np.maximum(edge_sq[0], edge_sq[1]), np.maximum(edge_sq[2], edge_sq[3]))
+            lo = np.minimum(np.minimum(edge_sq[0], edge_sq[1]), np.minimum(edge_sq[2], edge_sq[3]))
+            self._add_aspect(hi, lo)
+        if not self.want & {"warpage", "skew"}:
+            return
         e0, e1, e2, e3 = p[1] - p[0], p[2] - p[1], p[3] - p[2], p[0] - p[3]
-        # n012 = e0 x e1, n013 = e3 x e0; n012 + n023 == n013 + n123 == (p2 - p0) x (p3 - p1)
-        area2 = _cross(e0 + e1, e1 + e2)
-        n012 = _cross(e0, e1)
-        n013 = _cross(e3, e0)
-        c1 = _cos_between(n012, area2 - n012)
-        c2 = _cos_between(n013, area2 - n013)
-        np.minimum(self.warp_cos, np.minimum(c1, c2), out=self.warp_cos)
-        # skew: principal axes (mid-side to mid-side) X1 = m12 - m30, X2 = m23 - m01 (x2)
-        np.maximum(self.skew_sin, np.abs(_cos_between(e0 - e2, e1 - e3)), out=self.skew_sin)
+        if "warpage" in self.want:
+            # n012 = e0 x e1, n013 = e3 x e0; n012 + n023 == n013 + n123 == (p2 - p0) x (p3 - p1)
+            area2 = _cross(e0 + e1, e1 + e2)
+            n012 = _cross(e0, e1)
+            n013 = _cross(e3, e0)
+            c1 = _cos_between(n012, area2 - n012)
+            c2 = _cos_between(n013, area2 - n013)
+            np.minimum(self.warp_cos, np.minimum(c1, c2), out=self.warp_cos)
+        if "skew" in self.want:
+            # principal axes (mid-side to mid-side) X1 = m12 - m30, X2 = m23 - m01 (x2)
+            np.maximum(self.skew_sin, np.abs(_cos_between(e0 - e2, e1 - e3)), out=self.skew_sin)
 
     def add_tri(self, edge_sq: Sequence[Arr]) -> None:
         """Triangle face with squared edge lengths (01, 12, 20)."""
         a, b, c = edge_sq  # a = |p1-p0|^2, b = |p2-p1|^2, c = |p0-p2|^2
-        hi = np.maximum(np.maximum(a, b), c)
-        lo = np.minimum(np.minimum(a, b), c)
-        self._add_aspect(hi, lo)
+        if "aspect" in self.want:
+            hi = np.maximum(np.maximum(a, b), c)
+            lo = np.minimum(np.minimum(a, b), c)
+            self._add_aspect(hi, lo)
+        if "skew" not in self.want:
+            return  # (a triangle's warpage is 0)
         # At vertex i: median m_i to the opposite mid-side versus the line joining the other two
         # mid-sides (parallel to the opposite edge e_i). With squared side lengths:
         # m_i . e_i = (difference of the adjacent sides' squares) / 2,
@@ -252,19 +266,38 @@ class _FaceAccumulator:
         np.maximum(self.aspect_sq, ratio, out=self.aspect_sq)
 
     def finish(self) -> dict[str, Arr]:
-        return {
-            "aspect": np.sqrt(self.aspect_sq),
-            "warpage": np.degrees(np.arccos(np.clip(self.warp_cos, -1.0, 1.0))),
-            "skew": np.degrees(np.arcsin(np.clip(self.skew_sin, 0.0, 1.0))),
-        }
+        out = {}
+        if "aspect" in self.want:
+            out["aspect"] = np.sqrt(self.aspect_sq)
+        if "warpage" in self.want:
+            out["warpage"] = np.degrees(np.arccos(np.clip(self.warp_cos, -1.0, 1.0)))
+        if "skew" in self.want:
+            out["skew"] = np.degrees(np.arcsin(np.clip(self.skew_sin, 0.0, 1.0)))
+        return out
 
 
-def _result(acc: _FaceAccumulator, corner: Arr, gauss: Arr, volume: Arr) -> dict[str, Arr]:
-    """A kernel's output: the face metrics with the two Jacobians and the volume."""
+def _selection(want: Sequence[str] | None) -> tuple[tuple[str, ...], bool]:
+    """The face measures a kernel asked for ``want`` works out, and whether its Gauss
+    determinants and volume (one computation) are among them. ``None``: everything."""
+    if want is None:
+        return FACE_METRICS, True
+    return (
+        tuple(k for k in FACE_METRICS if k in want),
+        bool({"jacobian_gauss", "volume"} & set(want)),
+    )
+
+
+def _result(
+    acc: _FaceAccumulator, corner: Arr, gauss: Arr | None, volume: Arr | None
+) -> dict[str, Arr]:
+    """A kernel's output: the face metrics with the two Jacobians and the volume (those
+    worked out: ``None`` is left out)."""
     out = acc.finish()
     out["jacobian_corner"] = corner
-    out["jacobian_gauss"] = gauss
-    out["volume"] = volume
+    if gauss is not None:
+        out["jacobian_gauss"] = gauss
+    if volume is not None:
+        out["volume"] = volume
     return out
 
 
@@ -274,18 +307,51 @@ def _result(acc: _FaceAccumulator, corner: Arr, gauss: Arr, volume: Arr) -> dict
 HEX_FACES = hex_faces_parametric()
 
 
-def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
-    """Metrics of trilinear hexahedra (nodes 0-3 bottom, 4-7 top)."""
+def hex8_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
+    """Metrics of trilinear hexahedra (nodes 0-3 bottom, 4-7 top).
+
+    ``want``: the metrics to work out besides the corner Jacobian (default all of them); each
+    comes out bit-identical whatever else is asked for, and the others are left out.
+    """
     m = p[0].shape[1]
+    faces, volumes = _selection(want)
     # edges along the parametric directions xi (0->1), eta (0->3), zeta (0->4)
     ex = (p[1] - p[0], p[2] - p[3], p[5] - p[4], p[6] - p[7])  # at (eta, zeta) = --, +-, -+, ++
     ey = (p[3] - p[0], p[2] - p[1], p[7] - p[4], p[6] - p[5])  # at (xi, zeta) = --, +-, -+, ++
     ez = (p[4] - p[0], p[5] - p[1], p[7] - p[3], p[6] - p[2])  # at (xi, eta) = --, +-, -+, ++
     corner = corner_determinants_cm(p, "hex8")
+    gauss = volume = None
+    if volumes:
+        gauss = _hex_gauss_determinants(ex, ey, ez)
+        volume = sum(gauss[1:], gauss[0]) * 0.125
+    acc = _FaceAccumulator(m, faces)
+    if faces:
+        # faces (any orientation; metrics are unsigned)
+        sq: dict[frozenset[int], Arr | None] = {}
+        for edges, pairs in (
+            (ex, ((0, 1), (3, 2), (4, 5), (7, 6))),
+            (ey, ((0, 3), (1, 2), (4, 7), (5, 6))),
+            (ez, ((0, 4), (1, 5), (3, 7), (2, 6))),
+        ):
+            for vec, (i, j) in zip(edges, pairs, strict=True):
+                sq[frozenset((i, j))] = _sq(vec) if "aspect" in faces else None
+        for face in HEX_FACES:
+            edge_sq = [sq[frozenset((face[i], face[(i + 1) % 4]))] for i in range(4)]
+            acc.add_quad([p[i] for i in face], edge_sq)
+    return _result(
+        acc,
+        ratio_of_determinants(corner),
+        None if gauss is None else ratio_of_determinants(gauss),
+        volume,
+    )
+
+
+def _hex_gauss_determinants(ex: Sequence[Vec], ey: Sequence[Vec], ez: Sequence[Vec]) -> list[Arr]:
+    """Determinants at the 2 x 2 x 2 Gauss points from each direction's four edges."""
     # Gauss points: bilinear interpolation of each direction's four edges at +-g
     g = GAUSS_2
 
-    def interp(e: tuple[Vec, Vec, Vec, Vec]) -> list[Vec]:
+    def interp(e: Sequence[Vec]) -> list[Vec]:
         # e[0..3] at (s, t) = (-,-), (+,-), (-,+), (+,+); returns values at (s, t) = (-g|+g)^2
         out = []
         for t in (-g, g):
@@ -305,58 +371,56 @@ def hex8_quality(p: Sequence[Vec]) -> dict[str, Arr]:
         for yi in (0, 1):
             for xi in (0, 1):
                 gauss.append(_triple(gx[yi + 2 * zi], gy[xi + 2 * zi], gz[xi + 2 * yi]))
-    volume = sum(gauss[1:], gauss[0]) * 0.125
-    # faces (any orientation; metrics are unsigned)
-    sq = {}
-    for edges, pairs in (
-        (ex, ((0, 1), (3, 2), (4, 5), (7, 6))),
-        (ey, ((0, 3), (1, 2), (4, 7), (5, 6))),
-        (ez, ((0, 4), (1, 5), (3, 7), (2, 6))),
-    ):
-        for vec, (i, j) in zip(edges, pairs, strict=True):
-            sq[frozenset((i, j))] = _sq(vec)
-    acc = _FaceAccumulator(m)
-    for face in HEX_FACES:
-        edges = [sq[frozenset((face[i], face[(i + 1) % 4]))] for i in range(4)]
-        acc.add_quad([p[i] for i in face], edges)
-    return _result(acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), volume)
+    return gauss
 
 
 #: 3-point triangle rule (r, s), weight 1/6 each.
 _TRI_POINTS = ((1.0 / 6.0, 1.0 / 6.0), (2.0 / 3.0, 1.0 / 6.0), (1.0 / 6.0, 2.0 / 3.0))
 
 
-def wedge6_quality(p: Sequence[Vec]) -> dict[str, Arr]:
-    """Metrics of linear wedges (triangle 0,1,2 below 3,4,5; edges i -> i+3)."""
+def wedge6_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
+    """Metrics of linear wedges (triangle 0,1,2 below 3,4,5; edges i -> i+3); ``want`` as
+    for :func:`hex8_quality`."""
     m = p[0].shape[1]
+    faces, volumes = _selection(want)
     b1, b2 = p[1] - p[0], p[2] - p[0]
     t1, t2 = p[4] - p[3], p[5] - p[3]
     v = (p[3] - p[0], p[4] - p[1], p[5] - p[2])
     corner = corner_determinants_cm(p, "wedge6")
-    gauss = []
-    volume = np.zeros(m)
-    for z in (-GAUSS_2, GAUSS_2):
-        wb, wt = 0.5 * (1 - z), 0.5 * (1 + z)
-        n = _cross(wb * b1 + wt * t1, wb * b2 + wt * t2)
-        for r, s in _TRI_POINTS:
-            xz = 0.5 * ((1 - r - s) * v[0] + r * v[1] + s * v[2])
-            d = _dot(n, xz)
-            gauss.append(d)
-            volume += d / 6.0
-    sq01, sq12, sq20 = _sq(b1), _sq(p[2] - p[1]), _sq(b2)
-    sq34, sq45, sq53 = _sq(t1), _sq(p[5] - p[4]), _sq(t2)
-    sq03, sq14, sq25 = _sq(v[0]), _sq(v[1]), _sq(v[2])
-    acc = _FaceAccumulator(m)
-    acc.add_tri((sq01, sq12, sq20))
-    acc.add_tri((sq34, sq45, sq53))
-    acc.add_quad([p[0], p[1], p[4], p[3]], (sq01, sq14, sq34, sq03))
-    acc.add_quad([p[1], p[2], p[5], p[4]], (sq12, sq25, sq45, sq14))
-    acc.add_quad([p[2], p[0], p[3], p[5]], (sq20, sq03, sq53, sq25))
-    return _result(acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), volume)
+    gauss: list[Arr] | None = None
+    volume = None
+    if volumes:
+        gauss = []
+        volume = np.zeros(m)
+        for z in (-GAUSS_2, GAUSS_2):
+            wb, wt = 0.5 * (1 - z), 0.5 * (1 + z)
+            n = _cross(wb * b1 + wt * t1, wb * b2 + wt * t2)
+            for r, s in _TRI_POINTS:
+                xz = 0.5 * ((1 - r - s) * v[0] + r * v[1] + s * v[2])
+                d = _dot(n, xz)
+                gauss.append(d)
+                volume += d / 6.0
+    acc = _FaceAccumulator(m, faces)
+    if faces:
+        sq01, sq12, sq20 = _sq(b1), _sq(p[2] - p[1]), _sq(b2)
+        sq34, sq45, sq53 = _sq(t1), _sq(p[5] - p[4]), _sq(t2)
+        sq03, sq14, sq25 = _sq(v[0]), _sq(v[1]), _sq(v[2])
+        acc.add_tri((sq01, sq12, sq20))
+        acc.add_tri((sq34, sq45, sq53))
+        acc.add_quad([p[0], p[1], p[4], p[3]], (sq01, sq14, sq34, sq03))
+        acc.add_quad([p[1], p[2], p[5], p[4]], (sq12, sq25, sq45, sq14))
+        acc.add_quad([p[2], p[0], p[3], p[5]], (sq20, sq03, sq53, sq25))
+    return _result(
+        acc,
+        ratio_of_determinants(corner),
+        None if gauss is None else ratio_of_determinants(gauss),
+        volume,
+    )
 
 
-def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
-    """Metrics of pyramids (quad base 0-3 counter-clockwise seen from apex 4).
+def pyramid5_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
+    """Metrics of pyramids (quad base 0-3 counter-clockwise seen from apex 4); ``want`` as for
+    :func:`hex8_quality`.
 
     The collapsed-hex map of a pyramid is singular at the apex, so both Jacobians are the ratio
     of the four base-corner determinants ``det(p[i+1]-p[i], p[i-1]-p[i], p[4]-p[i])`` (1 for a
@@ -364,18 +428,22 @@ def pyramid5_quality(p: Sequence[Vec]) -> dict[str, Arr]:
     centroid) / 6``, exact for a planar base.
     """
     m = p[0].shape[1]
+    faces, volumes = _selection(want)
     base = p[:4]
-    e = [base[(i + 1) % 4] - base[i] for i in range(4)]  # e[i] = edge i -> i+1
     jac = ratio_of_determinants(corner_determinants_cm(p, "pyramid5"))
-    centroid = 0.25 * (base[0] + base[1] + base[2] + base[3])
-    volume = _dot(_cross(base[2] - base[0], base[3] - base[1]), p[4] - centroid) / 6.0
-    sq_base = [_sq(ei) for ei in e]
-    sq_side = [_sq(p[4] - base[i]) for i in range(4)]
-    acc = _FaceAccumulator(m)
-    acc.add_quad(list(base), sq_base)
-    for i in range(4):
-        acc.add_tri((sq_base[i], sq_side[(i + 1) % 4], sq_side[i]))
-    return _result(acc, jac, jac.copy(), volume)
+    volume = None
+    if volumes:
+        centroid = 0.25 * (base[0] + base[1] + base[2] + base[3])
+        volume = _dot(_cross(base[2] - base[0], base[3] - base[1]), p[4] - centroid) / 6.0
+    acc = _FaceAccumulator(m, faces)
+    if faces:
+        e = [base[(i + 1) % 4] - base[i] for i in range(4)]  # e[i] = edge i -> i+1
+        sq_base = [_sq(ei) for ei in e]
+        sq_side = [_sq(p[4] - base[i]) for i in range(4)]
+        acc.add_quad(list(base), sq_base)
+        for i in range(4):
+            acc.add_tri((sq_base[i], sq_side[(i + 1) % 4], sq_side[i]))
+    return _result(acc, jac, None if volume is None else jac.copy(), volume)
 
 
 #: h / sqrt(A) of the regular tetrahedron (height over the square root of the opposite face's
@@ -530,24 +598,28 @@ def _tet_volume_and_edges(p: Sequence[Vec]) -> tuple[Arr, tuple[Arr, ...]]:
     return six_volume, edge_sq
 
 
-def tet4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
-    """Metrics of linear tetrahedra (triangle 0,1,2 counter-clockwise seen from apex 3).
+def tet4_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
+    """Metrics of linear tetrahedra (triangle 0,1,2 counter-clockwise seen from apex 3);
+    ``want`` as for :func:`hex8_quality` (any of :data:`TET_METRICS` brings all of them).
 
     The determinant is constant: both Jacobians are 1 for a positive volume, else -1. The
     tetrahedral measures of :func:`tet_shape_measures` are added.
     """
     m = p[0].shape[1]
+    faces, _ = _selection(want)
     six_volume, edge_sq = _tet_volume_and_edges(p)
     s01, s02, s03, s12, s13, s23 = edge_sq
     volume = six_volume / 6.0
     jac = np.where(volume > 0.0, 1.0, -1.0)
-    acc = _FaceAccumulator(m)
-    acc.add_tri((s01, s12, s02))
-    acc.add_tri((s01, s13, s03))
-    acc.add_tri((s12, s23, s13))
-    acc.add_tri((s02, s23, s03))
+    acc = _FaceAccumulator(m, faces)
+    if faces:
+        acc.add_tri((s01, s12, s02))
+        acc.add_tri((s01, s13, s03))
+        acc.add_tri((s12, s23, s13))
+        acc.add_tri((s02, s23, s03))
     out = _result(acc, jac, jac.copy(), volume)
-    out.update(tet_shape_measures(p, six_volume, edge_sq))
+    if want is None or set(TET_METRICS) & set(want):
+        out.update(tet_shape_measures(p, six_volume, edge_sq))
     return out
 
 
@@ -585,49 +657,62 @@ def midside_offsets(p: Sequence[Vec]) -> dict[str, Arr]:
     return {"midside_normal": normal, "midside_tangent": tangent}
 
 
-def tet10_quality(p: Sequence[Vec]) -> dict[str, Arr]:
+def tet10_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
     """Metrics of 10-node tetrahedra: every tet4 metric of the corner tetrahedron (nodes 0-3)
-    and the mid-side-node offsets of :func:`midside_offsets` (nodes 4-9)."""
-    out = tet4_quality(p[:4])
-    out.update(midside_offsets(p))
+    and the mid-side-node offsets of :func:`midside_offsets` (nodes 4-9); ``want`` as for
+    :func:`tet4_quality` (either offset brings both)."""
+    out = tet4_quality(p[:4], want)
+    if want is None or set(TET10_METRICS) & set(want):
+        out.update(midside_offsets(p))
     return out
 
 
 # ---------------------------------------------------------------------- shells
-def quad4_quality(p: Sequence[Vec]) -> dict[str, Arr]:
-    """Metrics of bilinear quad shells.
+def quad4_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
+    """Metrics of bilinear quad shells; ``want`` as for :func:`hex8_quality` (the area, cheap,
+    always comes along).
 
     Determinants ``d = (x_xi x x_eta) . n`` with ``n = (p2 - p0) x (p3 - p1)`` (the element's
     mean normal; its length does not change the ratio). Area = ``|n| / 2``.
     """
     m = p[0].shape[1]
+    faces, _ = _selection(want)
     n = _cross(p[2] - p[0], p[3] - p[1])
     e = [p[(i + 1) % 4] - p[i] for i in range(4)]  # e[i] = edge i -> i+1
     corner = corner_determinants_cm(p, "quad4", n)
-    # x_xi along edges 0->1 (eta=-1) and 3->2 (eta=+1); x_eta along 0->3 (xi=-1), 1->2 (xi=+1)
-    ex_lo, ex_hi = e[0], -e[2]
-    ey_lo, ey_hi = -e[3], e[1]
-    gauss = []
-    for eta in (-GAUSS_2, GAUSS_2):
-        x_xi = 0.5 * ((1 - eta) * ex_lo + (1 + eta) * ex_hi)
-        for xi in (-GAUSS_2, GAUSS_2):
-            x_eta = 0.5 * ((1 - xi) * ey_lo + (1 + xi) * ey_hi)
-            gauss.append(_dot(_cross(x_xi, x_eta), n))
-    acc = _FaceAccumulator(m)
-    acc.add_quad(list(p), [_sq(ei) for ei in e])
+    gauss = None
+    if want is None or "jacobian_gauss" in want:
+        # x_xi along edges 0->1 (eta=-1) and 3->2 (eta=+1); x_eta along 0->3 (xi=-1), 1->2 (xi=+1)
+        ex_lo, ex_hi = e[0], -e[2]
+        ey_lo, ey_hi = -e[3], e[1]
+        gauss = []
+        for eta in (-GAUSS_2, GAUSS_2):
+            x_xi = 0.5 * ((1 - eta) * ex_lo + (1 + eta) * ex_hi)
+            for xi in (-GAUSS_2, GAUSS_2):
+                x_eta = 0.5 * ((1 - xi) * ey_lo + (1 + xi) * ey_hi)
+                gauss.append(_dot(_cross(x_xi, x_eta), n))
+    acc = _FaceAccumulator(m, faces)
+    if faces:
+        acc.add_quad(list(p), [_sq(ei) for ei in e])
     return _result(
-        acc, ratio_of_determinants(corner), ratio_of_determinants(gauss), 0.5 * np.sqrt(_sq(n))
+        acc,
+        ratio_of_determinants(corner),
+        None if gauss is None else ratio_of_determinants(gauss),
+        0.5 * np.sqrt(_sq(n)),
     )
 
 
-def tri3_quality(p: Sequence[Vec]) -> dict[str, Arr]:
-    """Metrics of linear triangle shells: Jacobian 1 (or -1 for zero area), area >= 0."""
+def tri3_quality(p: Sequence[Vec], want: Sequence[str] | None = None) -> dict[str, Arr]:
+    """Metrics of linear triangle shells: Jacobian 1 (or -1 for zero area), area >= 0;
+    ``want`` as for :func:`hex8_quality`."""
     m = p[0].shape[1]
+    faces, _ = _selection(want)
     e01, e02 = p[1] - p[0], p[2] - p[0]
     area = 0.5 * np.sqrt(_sq(_cross(e01, e02)))
     jac = np.where(area > 0.0, 1.0, -1.0)
-    acc = _FaceAccumulator(m)
-    acc.add_tri((_sq(e01), _sq(p[2] - p[1]), _sq(e02)))
+    acc = _FaceAccumulator(m, faces)
+    if faces:
+        acc.add_tri((_sq(e01), _sq(p[2] - p[1]), _sq(e02)))
     return _result(acc, jac, jac.copy(), area)
 
 

@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from kneegui.model import ElementBlock
 from kneegui.quality.kernels import (
+    FACE_METRICS,
     KERNEL_EXTRA_METRICS,
     KERNELS,
     TET10_METRICS,
@@ -41,8 +42,15 @@ METRICS: tuple[str, ...] = (
 TET_ONLY_METRICS: tuple[str, ...] = TET_METRICS + TET10_METRICS
 #: Element types that have quality metrics (lines and springs have none).
 MEASURED_TYPES: tuple[str, ...] = tuple(KERNELS)
-#: The metrics :meth:`QualityEvaluator.evaluate` can measure alone (``only=``).
-ONLY_METRICS: tuple[str, ...] = ("jacobian_corner", *TET_METRICS)
+#: The metrics :meth:`QualityEvaluator.evaluate` can measure alone (``only=``): every one a
+#: heat-map shows (``volume`` is a solid's volume and a shell's area).
+ONLY_METRICS: tuple[str, ...] = (
+    "jacobian_corner",
+    *TET_METRICS,
+    *FACE_METRICS,
+    "volume",
+    *TET10_METRICS,
+)
 
 _CHUNK = 8192  # elements per kernel call: keeps the temporaries in cache
 _PARALLEL_MIN = 4 * _CHUNK
@@ -210,7 +218,9 @@ class QualityEvaluator:
             says what is inverted) alone, bit-identical to the full evaluation's, for a
             heat-map redrawn with every slider pose: about a third of the cost for the
             Jacobian, a sixth for the tet collapse, two thirds for the other tet measures
-            (measured together: a tet's result then has all of :data:`TET_METRICS`). The
+            (measured together: a tet's result then has all of :data:`TET_METRICS`), the
+            face measures and the volume without the rest of the kernel (what comes with
+            them, the Gauss-point Jacobian with a volume, is kept and marked measured). The
             other metrics of the result are NaN and marked as not measured (a type without
             the metric, a hex for a tet measure, has it NaN as always).
 
@@ -245,7 +255,7 @@ class QualityEvaluator:
                     rows=sel,
                     inverted=jac <= 0.0,
                     **{k: values.get(k, np.full(len(sel), np.nan)) for k in METRICS},
-                    **{k: values.get(k) for k in TET_METRICS},
+                    **{k: values.get(k) for k in TET_ONLY_METRICS},
                     measured=tuple(dict.fromkeys(("jacobian_corner", only, *values))),
                 )
                 continue
@@ -263,7 +273,16 @@ class QualityEvaluator:
         conn: NDArray[np.int64],
         only: str | None = None,
     ) -> dict[str, NDArray[np.float64]]:
-        if only is not None:
+        if only in (*FACE_METRICS, "volume", *TET10_METRICS):
+            # the type's own kernel, working out that measure (and the corner Jacobian) alone
+            full_kernel = KERNELS[etype][0]
+
+            def kernel(pts):
+                return full_kernel(pts, want=(only,))
+
+            empty = [np.zeros((3, 0)) for _ in range(conn.shape[1])]
+            names = tuple(kernel(empty))
+        elif only is not None:
             tets = etype in ("tet4", "tet10")
             if etype == "tet10":
                 conn = conn[:, :4]  # the corner tetrahedron
@@ -273,7 +292,7 @@ class QualityEvaluator:
                 extra = lambda pts: {"tet_collapse": tet_collapse_only(pts)}  # noqa: E731
             elif tets and only in TET_METRICS:
                 extra = tet_measures_only
-            names: tuple[str, ...] = ("jacobian_corner",)
+            names = ("jacobian_corner",)
             if extra is not None:
                 names += ("tet_collapse",) if only == "tet_collapse" else TET_METRICS
 

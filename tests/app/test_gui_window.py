@@ -18,7 +18,7 @@ from app.workspace import HEATMAP_METRICS, ExportBlocked
 from kneegui.geometry import measure_flexion
 from kneegui.io.lsdyna import read_deck
 from kneegui.ligaments import ligament_short_name
-from kneegui.quality import compute_quality
+from kneegui.quality import compute_quality, volume_change_pct
 from kneegui.reposition.pipeline import pose_model
 
 from .conftest import wait_idle
@@ -214,27 +214,44 @@ def test_pick_a_condyle_set_by_box_and_click(demo_window, qtbot):
     wait_idle(qtbot, ws)
 
 
-def test_live_jacobian_heatmap_is_the_full_evaluations_jacobian(demo_window, qtbot):
+def test_live_heatmaps_are_the_full_evaluations_values(demo_window, qtbot):
+    # each heat-map is measured alone in the pose thread (the rest of the kernel is skipped);
+    # what it shows must be the full evaluation's values, bit for bit
     ws, vp = demo_window.ws, demo_window.viewport
     rest_export = demo_window.rest_export_action.isChecked()
     demo_window.set_rest_export(False)
     try:
-        ws.set_metric("jacobian")
         ws.set_colour_mode("quality")
-        vp.flush()
-        ws.request_flexion(75.0)  # a slider pose: measured in the pose thread
-        wait_idle(qtbot, ws)
-        assert ws.flexion == pytest.approx(75.0) and ws.view_kind == "live mapping"
-        cells, live = ws._pose_quality
-        assert cells is vp._shown_cells and len(cells)
-        assert all(q.measured == ("jacobian_corner",) for q in live.by_type.values())
-        full = compute_quality(ws.coords, ws.model.blocks)
-        for metric in ("jacobian", "aspect"):  # aspect: not in the live measure, measured anew
-            shown = ws.element_values(metric, cells)
-            expected = np.concatenate([full[e].metric(metric) for e in ws.model.blocks])
-            sel = cells[np.isfinite(shown[cells])]
-            assert len(sel) > 0.9 * len(cells)
-            np.testing.assert_array_equal(shown[sel], expected[sel])
+        for angle, metric, measured in (
+            (75.0, "jacobian", "jacobian_corner"),
+            (80.0, "aspect", "aspect"),
+            (85.0, "warpage", "warpage"),
+            (70.0, "skew", "skew"),
+            (65.0, "volume_change", "volume"),
+            (60.0, "area_change", "volume"),
+        ):
+            ws.set_metric(metric)
+            vp.flush()
+            ws.request_flexion(angle)  # a slider pose: measured in the pose thread
+            wait_idle(qtbot, ws)
+            assert ws.flexion == pytest.approx(angle) and ws.view_kind == "live mapping"
+            cells, live = ws._pose_quality
+            assert cells is vp._shown_cells and len(cells)
+            for q in live.by_type.values():  # the measure alone, not every metric
+                assert q.measured[0] == "jacobian_corner" and measured in q.measured
+                assert len(q.measured) <= 3
+            full = compute_quality(ws.coords, ws.model.blocks)
+            expected = full.concatenated(measured)
+            if measured == "volume":
+                initial = compute_quality(ws.model.coords, ws.model.blocks)
+                expected = volume_change_pct(expected, initial.concatenated("volume"))
+            # the Jacobian's live measure has no aspect: that one is measured anew
+            aspect = full.concatenated("aspect")
+            for shown_metric, values in ((metric, expected), ("aspect", aspect)):
+                shown = ws.element_values(shown_metric, cells)
+                sel = cells[np.isfinite(shown[cells])]
+                assert len(sel) >= 100
+                np.testing.assert_array_equal(shown[sel], values[sel])
     finally:
         ws.set_colour_mode("part")
         demo_window.set_rest_export(rest_export)

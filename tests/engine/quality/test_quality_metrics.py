@@ -9,7 +9,7 @@ import pytest
 
 from kneegui.model import ElementBlock
 from kneegui.quality import QualityEvaluator, compute_quality
-from kneegui.quality.metrics import ONLY_METRICS
+from kneegui.quality.metrics import METRICS, ONLY_METRICS
 from kneegui.topology import SOLID_FACES, split_degenerate_solids
 
 UNIT_CUBE = np.array(
@@ -380,12 +380,15 @@ def test_single_metric_evaluation_is_bit_identical_to_the_full_one(only):
                 np.testing.assert_array_equal(
                     fast[etype].metric(measured), full[etype].metric(measured)
                 )
-            assert fast[etype].has("jacobian") and not fast[etype].has("aspect")
+            # the rest of the kernel is not worked out, and says so
+            skipped = [k for k in METRICS if k not in fast[etype].measured]
+            assert fast[etype].has("jacobian") and skipped
+            assert not fast[etype].has(skipped[0])
             assert fast[etype].has(only) == full[etype].has(only)
             with pytest.raises(ValueError, match="not measured"):
-                fast[etype].metric("volume")
+                fast[etype].metric(skipped[0])
         collapse = full["tet4"].tet_collapse
         assert collapse.min() < 0 < collapse.max()  # inverted and valid tets among the cases
     assert 0 < full.n_inverted < full.n_elements  # the cases include inverted elements
     with pytest.raises(ValueError, match="only= takes one of"):
-        evaluator.evaluate(coords, only="aspect")
+        evaluator.evaluate(coords, only="jacobian_gauss")
