@@ -31,8 +31,18 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from kneegui.meshopt.foldover_kernel import foldover_free_energy, quad_barrier_energy
-from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
+from kneegui.meshopt.foldover_kernel import (
+    foldover_energy_in_parts,
+    foldover_free_energy,
+    quad_barrier_energy,
+)
+from kneegui.meshopt.parallel import (
+    PARALLEL_KERNEL_LOCK,
+    PARALLEL_MIN_ELEMENTS,
+    PARTS,
+    add_in_order,
+    part_bounds,
+)
 from kneegui.meshopt.quality_optimiser import QualityOptimisationReport
 from kneegui.quality.kernels import corner_determinants
 from kneegui.topology import sorted_unique
@@ -315,6 +325,7 @@ class FoldoverEnergy:
             diag = diag[:m] + self.virtual_t.multiply(self.virtual_t) @ diag[m:]
         self.diagonal = diag[:m]
         self._buffers: NDArray[np.float64] | None = None
+        self._cut = part_bounds(len(self.tets))
 
     def augment(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Local real coordinates (m, 3) followed by the virtual nodes' coordinates."""
@@ -344,31 +355,24 @@ class FoldoverEnergy:
     def _energy_in_parts(self, xa, eps, grad, det) -> float:
         """The compiled energy over fixed parts of the corners, each into its own gradient
         buffer, added in order (:mod:`kneegui.meshopt.parallel`)."""
-        cut = part_bounds(len(self.tets))
         if self._buffers is None or self._buffers.shape[1:] != xa.shape:
             self._buffers = np.empty((PARTS, *xa.shape))
-        buffers = self._buffers
-
-        def part(k: int) -> float:
-            a, b = cut[k], cut[k + 1]
-            return float(
-                foldover_free_energy(
-                    xa,
-                    self.tets[a:b],
-                    self.g_rows[a:b],
-                    self.weight[a:b],
-                    self.theta,
-                    eps,
-                    buffers[k],
-                    det[a:b],
-                )
+        totals = np.empty(PARTS)
+        with PARALLEL_KERNEL_LOCK:
+            foldover_energy_in_parts(
+                xa,
+                self.tets,
+                self.g_rows,
+                self.weight,
+                self.theta,
+                eps,
+                self._cut,
+                self._buffers,
+                det,
+                totals,
             )
-
-        total = 0.0
-        for value in run_parts(part):  # in order: the sum does not depend on the thread count
-            total += value
-        np.sum(buffers, axis=0, out=grad)
-        return total
+        np.sum(self._buffers, axis=0, out=grad)
+        return add_in_order(totals)
 
     def _add_shells(self, x, eps, energy, grad, det):
         if len(self.quads) == 0:

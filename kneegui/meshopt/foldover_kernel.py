@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from numba import njit, prange
 
 from kneegui.meshopt.quality_kernel import _cross_grad, _diagonal_cross_grad, _normal
 
@@ -143,6 +143,21 @@ def foldover_free_energy(xa, tets, g, w, theta, eps, grad, det_out):  # pragma: 
         grad[a0, 1] -= h10 + h11 + h12
         grad[a0, 2] -= h20 + h21 + h22
     return total
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def foldover_energy_in_parts(
+    xa, tets, g, w, theta, eps, cut, buffers, det, totals
+):  # pragma: no cover - compiled
+    """:func:`foldover_free_energy` over the fixed parts ``cut`` (:mod:`kneegui.meshopt.parallel`)
+    in parallel: part ``k`` fills ``buffers[k]`` (S, 3) with its gradient and ``totals[k]`` with
+    its energy; ``det`` as for the whole."""
+    for k in prange(len(cut) - 1):
+        a = cut[k]
+        b = cut[k + 1]
+        totals[k] = foldover_free_energy(
+            xa, tets[a:b], g[a:b], w[a:b], theta, eps, buffers[k], det[a:b]
+        )
 
 
 @njit(cache=True, nogil=True)

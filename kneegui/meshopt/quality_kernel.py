@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from kneegui.quality.kernels import TET_COLLAPSE_NORM
 
@@ -443,6 +443,59 @@ def face_shape_penalty(x, faces, aims, weights, grad):  # pragma: no cover - com
             grad[p3, 1] += gby - gay
             grad[p3, 2] += gbz - gaz
     return total
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def penalty_in_parts(  # pragma: no cover - compiled
+    x,
+    corners,
+    elem_ptr,
+    log_aim,
+    log_collapse_aim,
+    log_volume,
+    volume_band,
+    volume_weight,
+    quads,
+    quad_triples,
+    quad_log_aim,
+    faces,
+    aims,
+    weights,
+    e_cut,
+    q_cut,
+    f_cut,
+    buffers,
+    totals,
+):
+    """:func:`corner_ratio_penalty` plus :func:`face_shape_penalty` over fixed parts of the
+    elements, quads and faces (``e_cut``, ``q_cut``, ``f_cut``: :mod:`kneegui.meshopt.parallel`)
+    in parallel: part ``k`` fills ``buffers[k]`` with its gradient and ``totals[k]`` with its
+    penalty (``inf`` where a corner is not positive)."""
+    for k in prange(len(e_cut) - 1):
+        e0, e1 = e_cut[k], e_cut[k + 1]
+        c0, c1 = elem_ptr[e0], elem_ptr[e1]
+        q0, q1 = q_cut[k], q_cut[k + 1]
+        f0, f1 = f_cut[k], f_cut[k + 1]
+        value = corner_ratio_penalty(  # zeroes the buffer first
+            x,
+            corners[c0:c1],
+            elem_ptr[e0 : e1 + 1] - c0,
+            log_aim[e0:e1],
+            log_collapse_aim[e0:e1],
+            log_volume[e0:e1],
+            volume_band[e0:e1],
+            volume_weight,
+            quads[q0:q1],
+            quad_triples,
+            quad_log_aim[q0:q1],
+            buffers[k],
+        )
+        if not np.isfinite(value):
+            totals[k] = np.inf
+        else:
+            totals[k] = value + face_shape_penalty(
+                x, faces[f0:f1], aims[f0:f1], weights, buffers[k]
+            )
 
 
 @njit(cache=True, nogil=True)

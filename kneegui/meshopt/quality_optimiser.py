@@ -42,7 +42,13 @@ from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled
 from kneegui.meshopt.lbfgs import minimize_lbfgs
-from kneegui.meshopt.parallel import PARALLEL_MIN_ELEMENTS, PARTS, part_bounds, run_parts
+from kneegui.meshopt.parallel import (
+    PARALLEL_KERNEL_LOCK,
+    PARALLEL_MIN_ELEMENTS,
+    PARTS,
+    add_in_order,
+    part_bounds,
+)
 from kneegui.meshopt.quality_kernel import (
     LOG_COLLAPSE_SCALE,
     TET_OPPOSITE,
@@ -50,6 +56,7 @@ from kneegui.meshopt.quality_kernel import (
     corner_ratio_penalty,
     face_aims,
     face_shape_penalty,
+    penalty_in_parts,
     scatter_free,
 )
 from kneegui.model import ElementBlock
@@ -652,49 +659,38 @@ class _SplitPenalty:
     """The problem's penalty in fixed parts (:mod:`kneegui.meshopt.parallel`)."""
 
     def __init__(self, pr: _Problem) -> None:
-        n_solids = len(pr.elem_ptr) - 1
-        e_cut = part_bounds(n_solids)
-        q_cut = part_bounds(len(pr.quads))
-        f_cut = part_bounds(len(pr.faces))
-        self.parts = []
-        for k in range(PARTS):
-            e0, e1 = e_cut[k], e_cut[k + 1]
-            c0, c1 = pr.elem_ptr[e0], pr.elem_ptr[e1]
-            q0, q1 = q_cut[k], q_cut[k + 1]
-            f0, f1 = f_cut[k], f_cut[k + 1]
-            corner_args = (
-                pr.corners[c0:c1],
-                pr.elem_ptr[e0 : e1 + 1] - c0,
-                pr.log_aim[e0:e1],
-                pr.log_collapse_aim[e0:e1],
-                pr.log_volume[e0:e1],
-                pr.volume_band[e0:e1],
-                pr.volume_weight,
-                pr.quads[q0:q1],
-                QUAD_TRIPLES,
-                pr.quad_log_aim[q0:q1],
-            )
-            face_args = (
-                pr.faces[f0:f1],
-                pr.face_aims[f0:f1],
-                pr.weights,
-            )
-            self.parts.append((corner_args, face_args))
+        self.pr = pr
+        self.e_cut = part_bounds(len(pr.elem_ptr) - 1)
+        self.q_cut = part_bounds(len(pr.quads))
+        self.f_cut = part_bounds(len(pr.faces))
         self.buffers = np.zeros((PARTS, len(pr.nodes), 3))
 
     def __call__(self, x: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
-        def part(k: int) -> float:
-            corner_args, face_args = self.parts[k]
-            buffer = self.buffers[k]
-            value = corner_ratio_penalty(x, *corner_args, buffer)  # zeroes the buffer first
-            if not np.isfinite(value):
-                return np.inf
-            return float(value) + float(face_shape_penalty(x, *face_args, buffer))
-
-        values = run_parts(part)
-        total = 0.0
-        for value in values:  # in order: the sum does not depend on the thread count
-            total += value
+        pr = self.pr
+        totals = np.empty(PARTS)
+        with PARALLEL_KERNEL_LOCK:
+            penalty_in_parts(
+                x,
+                pr.corners,
+                pr.elem_ptr,
+                pr.log_aim,
+                pr.log_collapse_aim,
+                pr.log_volume,
+                pr.volume_band,
+                pr.volume_weight,
+                pr.quads,
+                QUAD_TRIPLES,
+                pr.quad_log_aim,
+                pr.faces,
+                pr.face_aims,
+                pr.weights,
+                self.e_cut,
+                self.q_cut,
+                self.f_cut,
+                self.buffers,
+                totals,
+            )
+        total = add_in_order(totals)
         if not np.isfinite(total):
             return np.inf
         np.sum(self.buffers, axis=0, out=grad)

@@ -11,7 +11,6 @@ linear blend of positions would.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -23,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from kneegui.errors import Cancelled
 from kneegui.geometry.transforms import RigidTransform
+from kneegui.meshopt.parallel import PARALLEL_KERNEL_LOCK
 from kneegui.model import ElementBlock
 from kneegui.topology import ELEMENT_EDGES, sorted_unique
 
@@ -223,9 +223,7 @@ def block_cg(
         # the columns still iterating, packed: a converged (or zero) column costs nothing
         xc, rc, pc = (np.ascontiguousarray(v[:, cols]) for v in (x, r, p))
         rzc, activec = rz[cols], active[cols]
-        # numba's built-in thread pool (the fallback where no OpenMP or TBB runtime is found)
-        # must not be entered by two threads at once
-        with _PARALLEL_KERNEL_LOCK:
+        with PARALLEL_KERNEL_LOCK:
             done += _cg_iterations(
                 indptr, indices, data, inv_diag, xc, rc, pc, rzc, activec, target[cols], steps
             )
@@ -236,7 +234,6 @@ def block_cg(
 
 #: Iterations of :func:`block_cg` between two polls of its ``cancel`` callable.
 _CANCEL_EVERY = 25
-_PARALLEL_KERNEL_LOCK = threading.Lock()
 
 
 @njit(cache=True, nogil=True)

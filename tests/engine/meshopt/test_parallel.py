@@ -1,17 +1,18 @@
-"""The kernels summed in fixed parts: the same bits on one thread as on several, and the same
-values (to rounding) as one serial pass."""
+"""The kernels summed in fixed parts: the same bits on one thread as on several, the same bits
+as the parts run one after the other, and the same values (to rounding) as one serial pass."""
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
+import numba
 import numpy as np
 import pytest
 
 import kneegui.meshopt.parallel as parallel
 from kneegui.meshopt.foldover import FoldoverEnergy
 from kneegui.meshopt.foldover_kernel import foldover_free_energy
+from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_shape_penalty
 from kneegui.meshopt.quality_optimiser import (
+    QUAD_TRIPLES,
     QualityOptions,
     _penalty,
     _SplitPenalty,
@@ -24,14 +25,11 @@ from kneegui.topology import corner_tetrahedra
 
 
 @pytest.fixture
-def one_thread(monkeypatch):
+def one_thread():
     """Run the parts on a single thread (as on a one-core machine)."""
-
-    def use_one_thread():
-        pool = ThreadPoolExecutor(1)
-        monkeypatch.setattr(parallel, "_POOL", [pool])
-
-    return use_one_thread
+    threads = numba.get_num_threads()
+    yield lambda: numba.set_num_threads(1)
+    numba.set_num_threads(threads)
 
 
 def distorted(block_model, seed=2):
@@ -56,6 +54,29 @@ def test_penalty_in_parts_is_the_same_on_one_thread_and_matches_one_pass(block_m
     g_one = np.zeros_like(x)
     v_one = _SplitPenalty(pr)(x, g_one)
     assert v_one == v_many and np.array_equal(g_one, g_many)  # bit for bit
+    # the parts one after the other, in Python, added in order: the same bits
+    buffers, v_parts = np.zeros((parallel.PARTS, *x.shape)), 0.0
+    e_cut, q_cut, f_cut = (
+        parallel.part_bounds(n) for n in (len(pr.elem_ptr) - 1, len(pr.quads), len(pr.faces))
+    )
+    for k in range(parallel.PARTS):
+        (e0, e1), (q0, q1), (f0, f1) = e_cut[k : k + 2], q_cut[k : k + 2], f_cut[k : k + 2]
+        c0, c1 = pr.elem_ptr[e0], pr.elem_ptr[e1]
+        corner_args = (pr.corners[c0:c1], pr.elem_ptr[e0 : e1 + 1] - c0)
+        element_args = (pr.log_aim, pr.log_collapse_aim, pr.log_volume, pr.volume_band)
+        value = corner_ratio_penalty(
+            x,
+            *corner_args,
+            *(a[e0:e1] for a in element_args),
+            pr.volume_weight,
+            pr.quads[q0:q1],
+            QUAD_TRIPLES,
+            pr.quad_log_aim[q0:q1],
+            buffers[k],
+        )
+        faces = (pr.faces[f0:f1], pr.face_aims[f0:f1], pr.weights)
+        v_parts += float(value) + float(face_shape_penalty(x, *faces, buffers[k]))
+    assert v_parts == v_many and np.array_equal(buffers.sum(axis=0), g_many)
     g_serial = np.zeros_like(x)
     v_serial = _penalty(pr, x, g_serial)
     assert v_serial > 0
@@ -75,6 +96,26 @@ def test_energy_in_parts_is_the_same_on_one_thread_and_matches_one_pass(block_mo
     e_one, g_one, d_one = sub.energy(x, 1e-3)
     assert e_one == e_many and np.array_equal(g_one, g_many) and np.array_equal(d_one, d_many)
     xa = np.ascontiguousarray(sub.augment(x))
+    # the parts one after the other, in Python, added in order: the same bits
+    cut = parallel.part_bounds(len(sub.tets))
+    buffers, d_parts, e_parts = np.empty((parallel.PARTS, *xa.shape)), np.empty(len(d_one)), 0.0
+    for k in range(parallel.PARTS):
+        a, b = cut[k], cut[k + 1]
+        e_parts += float(
+            foldover_free_energy(
+                xa,
+                sub.tets[a:b],
+                sub.g_rows[a:b],
+                sub.weight[a:b],
+                sub.theta,
+                1e-3,
+                buffers[k],
+                d_parts[a:b],
+            )
+        )
+    assert len(sub.quads) == 0  # (the energy adds the shells' barrier after the parts)
+    assert e_parts == e_many and np.array_equal(buffers.sum(axis=0), g_many)
+    np.testing.assert_array_equal(d_parts, d_many)
     g_serial, d_serial = np.empty_like(xa), np.empty(len(sub.tets))
     e_serial = foldover_free_energy(
         xa, sub.tets, sub.g_rows, sub.weight, sub.theta, 1e-3, g_serial, d_serial
