@@ -189,3 +189,24 @@ def test_gui_summary_reads_both_output_formats_and_refuses_unknown_ones():
     assert summary["frame_ms"] == 50.0 and summary["heatmap_frame_ms"] == 60.0
     assert summary["steps"] == 30 and summary["drag_updates_per_s"] == 18.0
     assert report.gui_summary({"results": {"part_colours": {"fps": 3}}}) is None
+
+
+def test_export_bench_keeps_the_median_run_of_its_repeats(monkeypatch):
+    from pathlib import Path
+
+    import bench.export_bench as export_bench
+
+    walls = iter([9.0, 7.0, 8.0])
+
+    def fake_measure(folder, angle=90.0, timeout_s=None):
+        wall = next(walls)
+        return {
+            "folder": str(folder),
+            "export": {"wall_s": wall, "split_s": {"relaxation": wall - 1.0}},
+            "precompute": {"wall_s": wall / 10},
+        }
+
+    monkeypatch.setattr(export_bench, "measure", fake_measure)
+    run = export_bench.measure_repeated(Path("deck"), repeats=3)
+    assert run["export"]["wall_s"] == 8.0 and run["export"]["split_s"]["relaxation"] == 7.0
+    assert run["repeats"] == 3 and run["export_runs_s"] == [7.0, 8.0, 9.0]
