@@ -50,6 +50,10 @@ NUMPY_AVX512_TARGETS: tuple[str, ...] = (
 OPENBLAS_CORETYPE = "Haswell"
 #: Environment variable that turns the pin off (``1``).
 OPT_OUT = "KNEEGUI_NATIVE_DISPATCH"
+#: The variables the pin sets.
+PINNED_VARIABLES: tuple[str, ...] = ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")
+#: Those the user had set before kneegui was imported (their values win over the pin).
+USER_SETTINGS: dict[str, str] = {}
 
 
 def _cpu_flags() -> set[str]:
@@ -76,6 +80,7 @@ def pin_numeric_dispatch() -> bool:
         return False
     if platform.machine().lower() not in ("x86_64", "amd64"):
         return False
+    USER_SETTINGS.update({k: os.environ[k] for k in PINNED_VARIABLES if k in os.environ})
     os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", " ".join(NUMPY_AVX512_TARGETS))
     if {"avx2", "fma"} <= _cpu_flags():
         os.environ.setdefault("OPENBLAS_CORETYPE", OPENBLAS_CORETYPE)
@@ -84,7 +89,8 @@ def pin_numeric_dispatch() -> bool:
 
 def dispatch_state() -> dict[str, Any]:
     """What this process's numerics run on: numpy's active AVX-512 targets, the OpenBLAS core
-    asked for, and whether the export's kernels are the pinned ones (``pinned``)."""
+    asked for, whether the export's kernels are the pinned ones (``pinned``), and the dispatch
+    variables the user had set before kneegui (``user_settings``: they win over the pin)."""
     import numpy as np
 
     try:
@@ -100,6 +106,7 @@ def dispatch_state() -> dict[str, Any]:
         "numpy_avx512_targets": avx512,
         "openblas_coretype": coretype,
         "pinned": x86 and not avx512 and blas_pinned,
+        "user_settings": dict(USER_SETTINGS),
     }
 
 

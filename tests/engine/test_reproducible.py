@@ -31,10 +31,27 @@ AVX2_MACHINE = {
 
 def test_the_engine_runs_the_pinned_kernels():
     """The test process imported kneegui (tests/conftest.py) before numpy: no AVX-512 kernel
-    of numpy is active and OpenBLAS runs its Haswell kernels (on a CPU with AVX2)."""
+    of numpy is active and OpenBLAS runs its Haswell kernels (on a CPU with AVX2), unless the
+    user chose other kernels (as when the suite runs with an older CPU's kernels)."""
     state = dispatch_state()
+    chosen = {k: v for k, v in state["user_settings"].items() if AVX2_MACHINE.get(k) != v}
+    if chosen:
+        pytest.skip(f"the dispatch was set by the user, and the pin yields to it: {chosen}")
     assert state["numpy_avx512_targets"] == [], state
     assert state["pinned"], state
+
+
+def test_the_users_own_dispatch_wins_and_is_reported():
+    code = "import kneegui, json; from kneegui.reproducible import dispatch_state; "
+    code += "print(json.dumps(dispatch_state()))"
+    env = {**os.environ, "OPENBLAS_CORETYPE": "Nehalem"}
+    env.pop(OPT_OUT, None)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
+    state = json.loads(out.stdout.strip().splitlines()[-1])
+    assert state["openblas_coretype"] == "Nehalem" and not state["pinned"]
+    assert state["user_settings"]["OPENBLAS_CORETYPE"] == "Nehalem"
 
 
 def _pose(folder, out, env_update: dict[str, str | None]) -> dict:

@@ -47,8 +47,9 @@ def test_block_cg_gives_the_same_bits_with_any_number_of_threads():
     rng = np.random.default_rng(11)
     off = rng.random(n - 1)
     lap = sp.diags([-off, np.r_[off, 0.0] + np.r_[0.0, off] + 1e-3, -off], [-1, 0, 1]).tocsr()
-    rhs = rng.random((n, 3))
+    rhs = rng.random((n, 4))
     rhs[:, 2] *= 1e-9  # converges at another iteration than the others
+    rhs[:, 3] = 0.0  # nothing to solve: never iterates, stays at its start
     results = []
     before = numba.get_num_threads()
     try:
@@ -61,3 +62,4 @@ def test_block_cg_gives_the_same_bits_with_any_number_of_threads():
         np.testing.assert_array_equal(other, results[0])
     residual = rhs - lap @ results[0]
     assert np.all(np.linalg.norm(residual, axis=0) <= 1e-7 * np.linalg.norm(rhs, axis=0))
+    assert np.all(results[0][:, 3] == 0.0) and np.all(results[0][:, :3] != 0.0)
