@@ -192,6 +192,9 @@ class QualityEvaluator:
                 columns = KERNELS[etype][1]
                 self._conn[etype] = np.ascontiguousarray(block.conn[:, list(columns)])
         self._threads = threads or min(os.cpu_count() or 1, 8)
+        # what a kernel returns when asked for one measure, per (type, measure): worked out once
+        # (on no elements), not with every slider pose
+        self._only_names: dict[tuple[str, str], tuple[str, ...]] = {}
 
     @property
     def etypes(self) -> tuple[str, ...]:
@@ -280,8 +283,11 @@ class QualityEvaluator:
             def kernel(pts):
                 return full_kernel(pts, want=(only,))
 
-            empty = [np.zeros((3, 0)) for _ in range(conn.shape[1])]
-            names = tuple(kernel(empty))
+            names = self._only_names.get((etype, only), ())
+            if not names:
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    names = tuple(kernel([np.zeros((3, 0)) for _ in range(conn.shape[1])]))
+                self._only_names[(etype, only)] = names
         elif only is not None:
             tets = etype in ("tet4", "tet10")
             if etype == "tet10":
