@@ -114,6 +114,11 @@ class RelaxOptions:
         nodes among them off their tangent planes.
     restart_eps : float
         ``eps`` a restart begins with.
+    stall_rounds : int
+        An attempt whose rounds have not lowered its fewest inverted corners for this many
+        rounds in a row ends there (restarts, or stops after the last). When corners are still
+        inverted at the end, the relaxation keeps the round that left the fewest (of any
+        attempt).
     slide_skin : bool or None
         Skin nodes move only in the tangent plane of the pose being relaxed (the sliding nodes
         given to :class:`ElasticRelaxation`; ``None`` slides them there too).
@@ -140,6 +145,7 @@ class RelaxOptions:
     penetration_tolerance: float = 1e-3
     restarts: int = 2
     restart_eps: float = 0.05
+    stall_rounds: int = 4
     slide_skin: bool | None = None
 
     def __post_init__(self) -> None:
@@ -147,9 +153,15 @@ class RelaxOptions:
             raise ValueError(
                 f"RelaxOptions.volume_weight must be in [0, 1], not {self.volume_weight}"
             )
-        if self.max_rounds < 1 or self.iterations_per_round < 1 or self.restarts < 0:
+        if (
+            self.max_rounds < 1
+            or self.iterations_per_round < 1
+            or self.restarts < 0
+            or self.stall_rounds < 1
+        ):
             raise ValueError(
-                "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1 and restarts >= 0"
+                "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1, restarts >= 0"
+                " and stall_rounds >= 1"
             )
         if not 0 < self.eps_decrease < 1:
             raise ValueError(
@@ -178,6 +190,7 @@ class RelaxReport:
     restarts: int = 0
     contact_released: int = 0
     sliding_released: int = 0  # sliding skin nodes a restart let off their tangent planes
+    kept_attempt: int = -1  # attempt (0: before any restart) of the round kept; -1: the last
     iterations: int = 0
     evaluations: int = 0
     min_det_before: float = float("nan")
