@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from kneegui.errors import Cancelled, SetupError
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
@@ -53,6 +52,7 @@ from kneegui.reposition.rigid_blend import (
     harmonic_weights,
     log_rigid,
     mesh_edges,
+    surface_distances,
 )
 from kneegui.reposition.skin_contours import (
     WEIGHT_SHAPES,
@@ -440,6 +440,8 @@ class Repositioner:
             for s in SEGMENTS
         ]
         surfaces = [srf if len(srf) else anc for srf, anc in zip(surfaces, anchors, strict=True)]
+        # the prior and the bone coupling both need these: one search per surface
+        distance = surface_distances(model.coords, groups.soft, surfaces)
         return harmonic_weights(
             model.n_nodes,
             edges,
@@ -448,26 +450,27 @@ class Repositioner:
             model.coords,
             surfaces,
             self.options.regularisation,
-            prior_strength=self._bone_coupling(surfaces),
+            prior_strength=self._bone_coupling(distance[:, :3]),
             cancel=self._cancel,
+            surface_distance=distance,
         )
 
-    def _bone_coupling(self, surfaces: list[NDArray[np.int64]]) -> NDArray[np.float64]:
+    def _bone_coupling(self, bone_distance: NDArray[np.float64]) -> NDArray[np.float64]:
         """How strongly each soft node is pulled to the bone it lies on.
 
         Tissue lying on a bone (within ``coupling_length`` of its surface) follows that bone
         away from the joint, where it is attached in a real limb, but is free to slide in the
         joint region, so that nothing is torn between femur and tibia. The pull fades in
         smoothly with the distance from the F-E axis, from ``coupling_radii[0]`` to
-        ``coupling_radii[1]`` times the mean condyle radius.
+        ``coupling_radii[1]`` times the mean condyle radius. ``bone_distance``: each soft
+        node's distance to each moving bone's surface (:func:`surface_distances`).
         """
         opt = self.options
         coords = self.model.coords
         soft = self.groups.soft
-        bone_pts = np.concatenate([srf for srf in surfaces[:3] if len(srf)])
-        if opt.coupling_strength <= 0 or len(bone_pts) == 0:
+        if opt.coupling_strength <= 0 or not np.isfinite(bone_distance).any():
             return np.zeros(len(soft))
-        d, _ = cKDTree(coords[bone_pts]).query(coords[soft], workers=-1)
+        d = bone_distance.min(axis=1)
         rel = coords[soft] - self.axes.fe_axis.point
         axial = rel @ self.axes.fe_axis.direction
         r = np.linalg.norm(rel - axial[:, None] * self.axes.fe_axis.direction, axis=1)

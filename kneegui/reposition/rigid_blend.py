@@ -65,6 +65,7 @@ def harmonic_weights(
     edge_weighting: str = "inverse_square_length",
     prior_strength: NDArray[np.float64] | None = None,
     cancel: Callable[[], bool] | None = None,
+    surface_distance: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Harmonic partition-of-unity weights of ``free`` nodes with respect to anchor groups.
 
@@ -98,6 +99,9 @@ def harmonic_weights(
     cancel : callable, optional
         Polled during the iterative solve; returning True raises
         :class:`kneegui.errors.Cancelled`.
+    surface_distance : (F, S) ndarray, optional
+        :func:`surface_distances` of ``free`` to the prior's surfaces, when the caller has
+        measured them already (one nearest-point search per surface over every free node).
 
     Returns
     -------
@@ -113,7 +117,9 @@ def harmonic_weights(
         value[idx] = 0.0
     for s, idx in enumerate(anchors):
         value[idx, s] = 1.0
-    prior = _distance_prior(coords, free, anchor_surfaces or anchors)
+    if surface_distance is None:
+        surface_distance = surface_distances(coords, free, anchor_surfaces or anchors)
+    prior = _distance_prior(surface_distance)
     pos = np.full(n_nodes, -1, dtype=np.int64)
     pos[free] = np.arange(len(free))
     a, b = edges[:, 0], edges[:, 1]
@@ -351,15 +357,27 @@ def _cg_iterations(
     return steps
 
 
-def _distance_prior(
-    coords: NDArray[np.float64], free: NDArray[np.int64], surfaces: Sequence[NDArray[np.int64]]
+def surface_distances(
+    coords: NDArray[np.float64], nodes: NDArray[np.int64], surfaces: Sequence[NDArray[np.int64]]
 ) -> NDArray[np.float64]:
-    inv = np.zeros((len(free), len(surfaces)))
+    """Distance of each of ``nodes`` to the nearest node of each surface (``inf`` where a
+    surface has no nodes), shape (len(nodes), len(surfaces)).
+
+    The nearest of several surfaces' columns is the distance to their union, to the bit (a
+    node pair's distance is computed the same way whichever tree holds it).
+    """
+    out = np.full((len(nodes), len(surfaces)), np.inf)
     for s, idx in enumerate(surfaces):
-        if len(idx) == 0:
-            continue
-        d, _ = cKDTree(coords[idx]).query(coords[free], workers=-1)
-        inv[:, s] = 1.0 / np.maximum(d, 1e-6) ** 2
+        if len(idx):
+            out[:, s] = cKDTree(coords[idx]).query(coords[nodes], workers=-1)[0]
+    return out
+
+
+def _distance_prior(distance: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Inverse-square-distance weights of :func:`surface_distances`, rows summing to 1."""
+    inv = np.zeros(distance.shape)
+    measured = np.isfinite(distance)
+    inv[measured] = 1.0 / np.maximum(distance[measured], 1e-6) ** 2
     total = inv.sum(axis=1, keepdims=True)
     return inv / np.maximum(total, _SMALL)
 

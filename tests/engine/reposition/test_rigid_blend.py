@@ -63,3 +63,54 @@ def test_block_cg_gives_the_same_bits_with_any_number_of_threads():
     residual = rhs - lap @ results[0]
     assert np.all(np.linalg.norm(residual, axis=0) <= 1e-7 * np.linalg.norm(rhs, axis=0))
     assert np.all(results[0][:, 3] == 0.0) and np.all(results[0][:, :3] != 0.0)
+
+
+def test_the_nearest_of_several_surfaces_is_the_distance_to_their_union_to_the_bit():
+    """The bone coupling takes the nearest of the per-bone distances the prior measured, in
+    place of a search of all bones' nodes together: the same bits."""
+    from scipy.spatial import cKDTree
+
+    from kneegui.reposition.rigid_blend import surface_distances
+
+    rng = np.random.default_rng(5)
+    coords = rng.normal(size=(4000, 3)) * [40.0, 30.0, 200.0]
+    surfaces = [rng.choice(4000, 300, replace=False) for _ in range(3)] + [np.zeros(0, int)]
+    nodes = rng.choice(4000, 1500, replace=False)
+    distance = surface_distances(coords, nodes, surfaces)
+    assert distance.shape == (1500, 4) and np.all(np.isinf(distance[:, 3]))
+    union = np.concatenate(surfaces[:3])
+    expected = cKDTree(coords[union]).query(coords[nodes])[0]
+    np.testing.assert_array_equal(distance[:, :3].min(axis=1), expected)
+
+
+def test_harmonic_weights_are_the_same_given_the_surface_distances():
+    from kneegui.reposition.rigid_blend import harmonic_weights, surface_distances
+
+    n = 12
+    ticks = np.arange(n, dtype=float)
+    coords = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3)
+    index = np.arange(n**3).reshape(n, n, n)
+    edges = np.concatenate(
+        [
+            np.column_stack([index[:-1].ravel(), index[1:].ravel()]),
+            np.column_stack([index[:, :-1].ravel(), index[:, 1:].ravel()]),
+            np.column_stack([index[:, :, :-1].ravel(), index[:, :, 1:].ravel()]),
+        ]
+    )
+    anchors = [index[0].ravel(), index[-1].ravel(), index[:, 0, 0]]
+    anchors[2] = np.setdiff1d(anchors[2], np.concatenate(anchors[:2]))
+    free = np.setdiff1d(np.arange(n**3), np.concatenate(anchors))
+    measured = harmonic_weights(n**3, edges, free, anchors, coords)
+    given = harmonic_weights(
+        n**3,
+        edges,
+        free,
+        anchors,
+        coords,
+        surface_distance=surface_distances(coords, free, anchors),
+    )
+    np.testing.assert_array_equal(given, measured)
+    np.testing.assert_allclose(measured.sum(axis=1), 1.0, rtol=1e-12)
+    # the weight of the first group falls from its face to the opposite one
+    column = measured[np.searchsorted(free, index[1:-1, 5, 5]), 0]
+    assert np.all(np.diff(column) < 0)
