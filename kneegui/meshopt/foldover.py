@@ -114,6 +114,10 @@ class RelaxOptions:
         nodes among them off their tangent planes.
     restart_eps : float
         ``eps`` a restart begins with.
+    restart_rings : int
+        A restart moves only the free nodes within this many mesh edges of the stuck ones,
+        the rest of the region keeping what the passes before reached (0: the whole region
+        again).
     stall_rounds : int
         An attempt whose rounds have not lowered its fewest inverted corners for this many
         rounds in a row ends there (restarts, or stops after the last). When corners are still
@@ -145,6 +149,7 @@ class RelaxOptions:
     penetration_tolerance: float = 1e-3
     restarts: int = 2
     restart_eps: float = 0.05
+    restart_rings: int = 4
     stall_rounds: int = 4
     slide_skin: bool | None = None
 
@@ -158,10 +163,11 @@ class RelaxOptions:
             or self.iterations_per_round < 1
             or self.restarts < 0
             or self.stall_rounds < 1
+            or self.restart_rings < 0
         ):
             raise ValueError(
-                "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1, restarts >= 0"
-                " and stall_rounds >= 1"
+                "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1, restarts >= 0,"
+                " restart_rings >= 0 and stall_rounds >= 1"
             )
         if not 0 < self.eps_decrease < 1:
             raise ValueError(

@@ -668,9 +668,9 @@ class ElasticRelaxation:
         optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates
         and the smallest corner det J."""
         opt = self.options
-        sub = self.energy(free)
+        whole = sub = self.energy(free)
+        x_start = x.copy()  # the pose: where a restart puts stuck nodes back
         xl = x[sub.nodes]
-        xl_start = xl.copy()
         _, _, det = sub.energy(xl, 1e-3)
         report.corners = len(sub.tets)
         report.min_det_before = float(det.min())
@@ -678,19 +678,28 @@ class ElasticRelaxation:
         d_min = report.min_det_before
         eps = float(np.sqrt(1e-12 + 0.04 * min(d_min, 0.0) ** 2)) if d_min <= 0 else 1e-9
         eps = max(eps, 1e-9)
-        contact_global = self.contact_nodes[np.isin(self.contact_nodes, free)]
+        contact_region = self.contact_nodes[np.isin(self.contact_nodes, free)]
         if transforms is None:
-            contact_global = contact_global[:0]
-        # variables scaled by the diagonal of the Hessian at rest (Jacobi preconditioning):
-        # elements of very different sizes otherwise make L-BFGS crawl
-        scale = 1.0 / np.sqrt(np.maximum(sub.diagonal[sub.free], 1e-300))[:, None]
+            contact_region = contact_region[:0]
+        contact_global = contact_region
         stiffness = opt.untangling_contact_stiffness
         planes = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-        sliding = self._sliding_rows(x, sub)
-        released = np.zeros(0, dtype=np.int64)
+        released = np.zeros(0, dtype=np.int64)  # let off the bone contact
+        unslid = np.zeros(0, dtype=np.int64)  # sliding skin nodes let off their planes
         order = self.contour_order
-        is_sub_free = np.zeros(self.n_nodes, dtype=bool)
-        is_sub_free[sub.nodes[sub.free]] = True
+
+        def variables(sub: FoldoverEnergy) -> tuple:
+            """What the rounds need of the nodes ``sub`` moves: the variables' scale (the
+            diagonal of the Hessian at rest, Jacobi preconditioning: elements of very different
+            sizes otherwise make L-BFGS crawl), its sliding rows and its free nodes."""
+            scale = 1.0 / np.sqrt(np.maximum(sub.diagonal[sub.free], 1e-300))[:, None]
+            rows, normals = self._sliding_rows(x_start, sub)  # the pose's tangent planes
+            keep = ~np.isin(sub.nodes[sub.free[rows]], unslid)
+            is_sub_free = np.zeros(self.n_nodes, dtype=bool)
+            is_sub_free[sub.nodes[sub.free]] = True
+            return scale, (rows[keep], normals[keep]), is_sub_free
+
+        scale, sliding, is_sub_free = variables(sub)
         # the round that left the fewest corners inverted: a restart puts the stuck nodes back
         # where the pose had them, and where they cannot come free (tissue locked between two
         # bones) the attempts after it end with more corners inverted than the first
@@ -702,23 +711,34 @@ class ElasticRelaxation:
                     break
                 # the schedule drove eps to its floor with corners still inverted (typically
                 # nodes pressed onto one point while the barrier was soft): put those nodes
-                # back where the pose had them and start again from a soft barrier
-                stuck = self._stuck_nodes(sub, det)
-                xl[stuck] = xl_start[stuck]
+                # back where the pose had them and start again from a soft barrier, moving
+                # only the nodes around them (the rest of the region keeps what it reached)
+                x[sub.nodes] = xl
+                if sub is not whole:
+                    _, _, det = whole.energy(x[whole.nodes], eps)
+                stuck = whole.nodes[self._stuck_nodes(whole, det)]
+                x[stuck] = x_start[stuck]
+                sub = whole
+                if opt.restart_rings > 0:
+                    sub = self.energy(self._within_rings(stuck, opt.restart_rings, free))
+                xl = x[sub.nodes]
                 # a sliding skin node cannot leave its tangent plane, so the tissue pressed
                 # against it from inside (by a bone, or pinched in a crease) has nowhere to go:
                 # the stuck ones may now move off their plane
-                releasing = np.isin(sub.free[sliding[0]], stuck)
-                if releasing.any():
-                    sliding = (sliding[0][~releasing], sliding[1][~releasing])
-                    report.sliding_released += int(releasing.sum())
+                slides = self._sliding_rows(x_start, sub)
+                letting = np.intersect1d(sub.nodes[sub.free[slides[0]]], stuck)
+                letting = np.setdiff1d(letting, unslid)
+                unslid = np.union1d(unslid, letting)
+                report.sliding_released += len(letting)
                 if attempt == opt.restarts:
                     # last chance: where bone contact presses the tissue flat (tissue pinched
                     # between femur and tibia at deep flexion) a valid element matters more
                     # than a node slightly inside a bone, which the pose report counts
-                    released = np.union1d(released, sub.nodes[stuck])
-                    contact_global = np.setdiff1d(contact_global, released)
+                    released = np.union1d(released, stuck)
                     report.contact_released = len(released)
+                contact_global = np.setdiff1d(contact_region, released)
+                scale, sliding, is_sub_free = variables(sub)
+                contact_global = contact_global[is_sub_free[contact_global]]
                 eps = opt.restart_eps
                 stiffness = opt.untangling_contact_stiffness
                 report.restarts += 1
@@ -778,10 +798,16 @@ class ElasticRelaxation:
                 if d_min > 0:
                     stiffness = opt.contact_stiffness
                 else:
-                    inverted = int(report.history[-1]["inverted"])
-                    if best is None or (inverted, -d_min) < (best[0], -best[1]):
+                    inverted, d_whole, det_whole = report.history[-1]["inverted"], d_min, det
+                    if sub is not whole:  # counted over the whole region
+                        x[sub.nodes] = xl
+                        _, _, det_whole = whole.energy(x[whole.nodes], eps)
+                        inverted, d_whole = int(np.sum(det_whole <= 0)), float(det_whole.min())
+                        report.history[-1].update(inverted=inverted, min_det=d_whole)
+                    if best is None or (inverted, -d_whole) < (best[0], -best[1]):
+                        x[sub.nodes] = xl
                         released_then = (report.contact_released, report.sliding_released)
-                        best = (inverted, d_min, xl.copy(), det.copy(), attempt, released_then)
+                        best = (inverted, d_whole, x.copy(), det_whole, attempt, released_then)
                         best_round = report.rounds
                     # corners a round after round cannot free: go on to the restart (the 177k
                     # demo at 90 deg spent 27 of its 60 rounds with 6 or 1 corners inverted)
@@ -789,13 +815,27 @@ class ElasticRelaxation:
                     fewest_inverted = min(fewest_inverted, inverted)
                     if stalled >= opt.stall_rounds:
                         break
-        if d_min <= 0 and best is not None and best_round != report.rounds:
-            _, d_min, xl, det, report.kept_attempt, released_then = best
-            report.contact_released, report.sliding_released = released_then
         x[sub.nodes] = xl
+        if sub is not whole:
+            _, _, det = whole.energy(x[whole.nodes], max(eps, 1e-9))
+            d_min = float(det.min())
+        if d_min <= 0 and best is not None and best_round != report.rounds:
+            _, d_min, x_best, det, report.kept_attempt, released_then = best
+            x[:] = x_best
+            report.contact_released, report.sliding_released = released_then
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
         return x, d_min
+
+    def _within_rings(
+        self, seeds: NDArray[np.int64], rings: int, free: NDArray[np.int64]
+    ) -> NDArray[np.int64]:
+        """The nodes of ``free`` within ``rings`` mesh edges of ``seeds``."""
+        reach = np.zeros(self.n_nodes, dtype=np.int8)
+        reach[seeds] = 1
+        for _ in range(rings):
+            reach = ((reach + self._adjacency @ reach) > 0).astype(np.int8)
+        return free[reach[free] > 0]
 
     @staticmethod
     def _stuck_nodes(sub: FoldoverEnergy, det: NDArray[np.float64]) -> NDArray[np.int64]:
