@@ -485,11 +485,7 @@ class ElasticRelaxation:
         seed[nodes[nodes < self.n_nodes]] = True
         if extra_seeds is not None:
             seed[extra_seeds] = True
-        region = seed.astype(np.int8)
-        for _ in range(opt.rings):
-            region = region + self._adjacency @ region
-            region = (region > 0).astype(np.int8)
-        region = region > 0
+        region = self._reach(seed, opt.rings)
         if self.region_radius > 0 and seed.any():
             from scipy.spatial import cKDTree
 
@@ -827,15 +823,20 @@ class ElasticRelaxation:
         report.inverted_corners_after = int(np.sum(det <= 0))
         return x, d_min
 
+    def _reach(self, seed: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
+        """Mask of the nodes within ``rings`` mesh edges of the ``seed`` nodes."""
+        reach = seed.astype(np.int8)
+        for _ in range(rings):
+            reach = ((reach + self._adjacency @ reach) > 0).astype(np.int8)
+        return reach > 0
+
     def _within_rings(
         self, seeds: NDArray[np.int64], rings: int, free: NDArray[np.int64]
     ) -> NDArray[np.int64]:
         """The nodes of ``free`` within ``rings`` mesh edges of ``seeds``."""
-        reach = np.zeros(self.n_nodes, dtype=np.int8)
-        reach[seeds] = 1
-        for _ in range(rings):
-            reach = ((reach + self._adjacency @ reach) > 0).astype(np.int8)
-        return free[reach[free] > 0]
+        seed = np.zeros(self.n_nodes, dtype=bool)
+        seed[seeds] = True
+        return free[self._reach(seed, rings)[free]]
 
     @staticmethod
     def _stuck_nodes(sub: FoldoverEnergy, det: NDArray[np.float64]) -> NDArray[np.int64]:
