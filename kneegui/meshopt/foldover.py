@@ -118,6 +118,14 @@ class RelaxOptions:
         A restart moves only the free nodes within this many mesh edges of the stuck ones,
         the rest of the region keeping what the passes before reached (0: the whole region
         again).
+    focus_rings : int
+        After a round that left corners inverted, the next round moves only the free nodes
+        within this many mesh edges of them (of the attempt's region), the rest keeping what
+        it reached; a round that untangles them hands the next one back the attempt's whole
+        region, so the contact stiffens everywhere (0: every round moves the attempt's whole
+        region). 10 rather than 6: with 6 the coarse leg built at 20 deg, posed to 120 deg,
+        kept 7 movable elements inverted instead of 5 (10: 1), and the leg built at 0 deg a
+        soft-tissue node 0.5 mm inside a bone at 120 deg (docs/repositioning.md).
     stall_rounds : int
         An attempt whose rounds have not lowered its fewest inverted corners for this many
         rounds in a row ends there (restarts, or stops after the last). When corners are still
@@ -150,6 +158,7 @@ class RelaxOptions:
     restarts: int = 2
     restart_eps: float = 0.05
     restart_rings: int = 4
+    focus_rings: int = 10
     stall_rounds: int = 4
     slide_skin: bool | None = None
 
@@ -164,10 +173,11 @@ class RelaxOptions:
             or self.restarts < 0
             or self.stall_rounds < 1
             or self.restart_rings < 0
+            or self.focus_rings < 0
         ):
             raise ValueError(
                 "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1, restarts >= 0,"
-                " restart_rings >= 0 and stall_rounds >= 1"
+                " restart_rings >= 0, focus_rings >= 0 and stall_rounds >= 1"
             )
         if not 0 < self.eps_decrease < 1:
             raise ValueError(
