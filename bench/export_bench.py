@@ -24,6 +24,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results" / "export_scaling.json"
 ANGLE = 90.0
+#: The default demo's variant label: hexahedral soft solids, no element locked between bones.
+DEFAULT_VARIANT = "hex8"
 #: The row of the export's time outside its timed stages (wall time less their sum).
 UNSTAGED = "the rest (pose, pre-flight, checks, report; not timed apart)"
 BEGIN, END = "<!-- export-scaling:begin -->", "<!-- export-scaling:end -->"
@@ -33,6 +35,7 @@ import json, os, resource, sys, tempfile, time
 from kneegui.io.lsdyna import read_deck
 from kneegui.reposition import Repositioner
 from kneegui.reposition.pipeline import export_pose
+from kneegui.reposition.repositioner import SOFT_ROLES
 from kneegui.setup import load_setup
 from kneegui.topology import SOLID_TYPES
 
@@ -70,7 +73,13 @@ split = {
 }
 split["relaxation"] -= split["relaxation setup (first export)"]
 final = r["quality"].get("smoothed", r["quality"]["posed"])
+soft = set(setup.parts_of(*SOFT_ROLES))
+types = sorted(k for k, b in model.blocks.items()
+               if k in SOLID_TYPES and len(b) and soft & set(b.part_ids.tolist()))
+locked = r["preflight"]["locked"]["count"]
+variant = "+".join(types) + (f", {locked:,} locked" if locked else "")
 print(json.dumps({
+    "variant": variant,
     "nodes": model.n_nodes, "elements": model.n_elements,
     "solids": int(sum(len(b) for k, b in model.blocks.items() if k in SOLID_TYPES)),
     "precompute": pre,
@@ -117,6 +126,18 @@ def measure_repeated(folder: Path, angle: float = ANGLE, repeats: int = 1) -> di
     return out
 
 
+def _column(run: dict[str, Any]) -> str:
+    """A run's column heading: its solids, and its soft solids' element types and locked
+    elements (the pre-flight check's) where it recorded them."""
+    variant = run.get("variant")
+    return f"{run['solids']:,} solids" + (f" ({variant})" if variant else "")
+
+
+def _is_default(run: dict[str, Any]) -> bool:
+    """Whether a run is of the default demo (hexahedral flesh, nothing locked)."""
+    return run.get("variant", DEFAULT_VARIANT) == DEFAULT_VARIANT
+
+
 def _s(value: float) -> str:
     return f"{value:.2f} s" if value >= 1 else f"{1000 * value:.0f} ms"
 
@@ -142,7 +163,7 @@ def markdown(results: dict[str, Any]) -> list[str]:
     ]
     if not runs:
         return [*lines, "Not measured.", END]
-    head = "| | " + " | ".join(f"{r['solids']:,} solids" for r in runs) + " |"
+    head = "| | " + " | ".join(_column(r) for r in runs) + " |"
     lines += [head, "|---" * (len(runs) + 1) + "|"]
 
     def row(label: str, cells: list[str]) -> None:
@@ -196,7 +217,7 @@ def markdown(results: dict[str, Any]) -> list[str]:
         stage = max(split, key=split.get)
         total = sum(split.values())
         lines.append(
-            f"- {r['solids']:,} solids: {stage} {100 * split[stage] / max(total, 1e-12):.0f} % "
+            f"- {_column(r)}: {stage} {100 * split[stage] / max(total, 1e-12):.0f} % "
             f"of the staged time; relaxed region {r['region']['relaxed_nodes']:,} of "
             f"{r['nodes']:,} nodes ({100 * r['region']['relaxed_nodes'] / r['nodes']:.1f} %)."
         )
@@ -204,7 +225,7 @@ def markdown(results: dict[str, Any]) -> list[str]:
     if repeated:
         lines += ["", "Export times of the repeated sizes (every run, fresh processes):", ""]
         lines += [
-            f"- {r['solids']:,} solids: "
+            f"- {_column(r)}: "
             + ", ".join(_s(t) for t in r["export_runs_s"])
             + f" (median {_s(r['export']['wall_s'])})."
             for r in repeated
@@ -235,6 +256,8 @@ def plot(results: dict[str, Any], path: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    others = [r for r in runs if not _is_default(r)]
+    runs = [r for r in runs if _is_default(r)]
     x = [r["elements"] for r in runs]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     ax.loglog(x, [r["export"]["wall_s"] for r in runs], "o-", label="export, wall")
@@ -243,9 +266,17 @@ def plot(results: dict[str, Any], path: Path) -> Path | None:
         values = [max(r["export"]["split_s"][stage], 1e-3) for r in runs]
         ax.loglog(x, values, ".:", label=stage)
     ax.loglog(x, [r["precompute"]["wall_s"] for r in runs], "s-", label="precompute, wall")
+    for marker, r in zip("^vDP*X", others, strict=False):
+        ax.loglog(
+            [r["elements"]],
+            [r["export"]["wall_s"]],
+            marker,
+            color="black",
+            label=f"export, wall: {r['variant']}",
+        )
     ax.set_xlabel("model elements")
     ax.set_ylabel("seconds")
-    ax.set_title("kneegui export at 90° against model size (demo leg)")
+    ax.set_title("kneegui export at 90° against model size (demo leg; lines: default)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()

@@ -231,6 +231,9 @@ def test_export_table_accounts_for_the_time_outside_the_timed_stages():
         "inverted": 0,
         "peak_rss_mb": 100.0,
     }
-    lines = export_bench.markdown({"runs": [run]})
+    tets = {**run, "solids": 20, "elements": 40, "variant": "tet4, 7 locked"}
+    lines = export_bench.markdown({"runs": [run, tets]})
     rest = [line for line in lines if line.startswith(f"| — {export_bench.UNSTAGED}")]
-    assert rest == [f"| — {export_bench.UNSTAGED} | 2.50 s |"]
+    assert rest == [f"| — {export_bench.UNSTAGED} | 2.50 s | 2.50 s |"]
+    # a variant's column says what it is; a run that recorded none is left unnamed
+    assert "| | 10 solids | 20 solids (tet4, 7 locked) |" in lines
