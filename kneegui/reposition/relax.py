@@ -666,8 +666,7 @@ class ElasticRelaxation:
         opt = self.options
         whole = sub = self.energy(free)
         x_start = x.copy()  # the pose: where a restart puts stuck nodes back
-        xl = x[sub.nodes]
-        _, _, det = sub.energy(xl, 1e-3)
+        _, _, det = sub.energy(x[sub.nodes], 1e-3)
         report.corners = len(sub.tets)
         report.min_det_before = float(det.min())
         report.inverted_corners_before = int(np.sum(det <= 0))
@@ -677,25 +676,26 @@ class ElasticRelaxation:
         contact_region = self.contact_nodes[np.isin(self.contact_nodes, free)]
         if transforms is None:
             contact_region = contact_region[:0]
-        contact_global = contact_region
         stiffness = opt.untangling_contact_stiffness
         planes = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
         released = np.zeros(0, dtype=np.int64)  # let off the bone contact
         unslid = np.zeros(0, dtype=np.int64)  # sliding skin nodes let off their planes
         order = self.contour_order
 
-        def variables(sub: FoldoverEnergy) -> tuple:
-            """What the rounds need of the nodes ``sub`` moves: the variables' scale (the
-            diagonal of the Hessian at rest, Jacobi preconditioning: elements of very different
-            sizes otherwise make L-BFGS crawl), its sliding rows and its free nodes."""
+        def variables(sub: FoldoverEnergy, contact: NDArray[np.int64]) -> tuple:
+            """What the rounds need of the nodes ``sub`` moves, from ``x``: their coordinates,
+            the variables' scale (the diagonal of the Hessian at rest, Jacobi preconditioning:
+            elements of very different sizes otherwise make L-BFGS crawl), its sliding rows, its
+            free nodes and those of the ``contact`` nodes among them."""
             scale = 1.0 / np.sqrt(np.maximum(sub.diagonal[sub.free], 1e-300))[:, None]
             rows, normals = self._sliding_rows(x_start, sub)  # the pose's tangent planes
             keep = ~np.isin(sub.nodes[sub.free[rows]], unslid)
             is_sub_free = np.zeros(self.n_nodes, dtype=bool)
             is_sub_free[sub.nodes[sub.free]] = True
-            return scale, (rows[keep], normals[keep]), is_sub_free
+            sliding = (rows[keep], normals[keep])
+            return x[sub.nodes], scale, sliding, is_sub_free, contact[is_sub_free[contact]]
 
-        scale, sliding, is_sub_free = variables(sub)
+        xl, scale, sliding, is_sub_free, contact_global = variables(sub, contact_region)
         # the round that left the fewest corners inverted: a restart puts the stuck nodes back
         # where the pose had them, and where they cannot come free (tissue locked between two
         # bones) the attempts after it end with more corners inverted than the first
@@ -717,7 +717,6 @@ class ElasticRelaxation:
                 sub = whole
                 if opt.restart_rings > 0:
                     sub = self.energy(self._within_rings(stuck, opt.restart_rings, free))
-                xl = x[sub.nodes]
                 # a sliding skin node cannot leave its tangent plane, so the tissue pressed
                 # against it from inside (by a bone, or pinched in a crease) has nowhere to go:
                 # the stuck ones may now move off their plane
@@ -732,9 +731,8 @@ class ElasticRelaxation:
                     # than a node slightly inside a bone, which the pose report counts
                     released = np.union1d(released, stuck)
                     report.contact_released = len(released)
-                contact_global = np.setdiff1d(contact_region, released)
-                scale, sliding, is_sub_free = variables(sub)
-                contact_global = contact_global[is_sub_free[contact_global]]
+                contact = np.setdiff1d(contact_region, released)
+                xl, scale, sliding, is_sub_free, contact_global = variables(sub, contact)
                 eps = opt.restart_eps
                 stiffness = opt.untangling_contact_stiffness
                 report.restarts += 1
@@ -823,7 +821,6 @@ class ElasticRelaxation:
                     # the rest of the region has left its tangles behind: the next rounds
                     # move only the nodes around the corners still inverted (the 177k demo at
                     # 90 deg: 4,801 of them after the first round, 90 after the eighth)
-                    x[sub.nodes] = xl
                     stuck = whole.nodes[self._stuck_nodes(whole, det_whole)]
                     nodes = self._within_rings(stuck, opt.focus_rings, pass_free)
                     same = np.array_equal(nodes, sub.nodes[sub.free])
@@ -831,9 +828,7 @@ class ElasticRelaxation:
                 if focus is not sub:
                     x[sub.nodes] = xl
                     sub = focus
-                    xl = x[sub.nodes]
-                    scale, sliding, is_sub_free = variables(sub)
-                    contact_global = pass_contact[is_sub_free[pass_contact]]
+                    xl, scale, sliding, is_sub_free, contact_global = variables(sub, pass_contact)
         x[sub.nodes] = xl
         if sub is not whole:
             _, _, det = whole.energy(x[whole.nodes], max(eps, 1e-9))
