@@ -499,6 +499,42 @@ def penalty_in_parts(  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def below_floor(  # pragma: no cover - compiled
+    x, corners, elem_ptr, log_jacobian_floor, log_collapse_floor
+):
+    """True when a solid has a corner that is not positive, a corner Jacobian ``min d / max d``
+    (elements of several corners) below ``exp(log_jacobian_floor)``, or a tetrahedron (one
+    corner) a collapse below ``exp(log_collapse_floor)``; the arguments as
+    :func:`corner_ratio_penalty`'s."""
+    for e in range(elem_ptr.shape[0] - 1):
+        p0 = elem_ptr[e]
+        k = elem_ptr[e + 1] - p0
+        lo = math.inf
+        hi = -math.inf
+        for i in range(k):
+            ax, ay, az, bx, by, bz, ex, ey, ez = _corner_vectors(x, corners[p0 + i])
+            d = ex * (ay * bz - az * by) + ey * (az * bx - ax * bz) + ez * (ax * by - ay * bx)
+            if not d > 0.0:
+                return True
+            log_d = math.log(d)
+            lo = min(lo, log_d)
+            hi = max(hi, log_d)
+        if k > 1:
+            if lo - hi < log_jacobian_floor:
+                return True
+        elif log_collapse_floor > -math.inf:
+            c = corners[p0]
+            for f in range(4):
+                nx, ny, nz = _normal(
+                    x, c[TET_OPPOSITE[f, 0]], c[TET_OPPOSITE[f, 1]], c[TET_OPPOSITE[f, 2]]
+                )
+                nn = nx * nx + ny * ny + nz * nz
+                if lo - 0.75 * math.log(nn) + LOG_COLLAPSE_SCALE < log_collapse_floor:
+                    return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def scatter_free(work, free, v, h):  # pragma: no cover - compiled
     """``work[free[r]] = v[3 r : 3 r + 3] * h[r]`` (the scaled variables back to coordinates)."""
     for r in range(free.shape[0]):

@@ -53,6 +53,7 @@ from kneegui.meshopt.quality_kernel import (
     LOG_COLLAPSE_SCALE,
     TET_OPPOSITE,
     anchor_and_constraints,
+    below_floor,
     corner_ratio_penalty,
     face_aims,
     face_shape_penalty,
@@ -302,7 +303,13 @@ class QualityOptions:
         After the rounds, at most this many more against freshly evaluated constraints, the
         stiffness four times higher each time, while a node is farther than
         ``constraint_tolerance`` on the wrong side of its constraint; if one still is, one
-        round over the whole stage and at most this many settling rounds again.
+        round over the whole stage and at most this many settling rounds again (kept only if
+        it brought the nodes further out).
+    settling_floor : float
+        No settling round (nor that whole-stage round) may take a solid's corner Jacobian or a
+        tet's collapse below this fraction of the worst around the free nodes when the rounds
+        ended: a node its planes cannot bring back stays past them rather than flattening the
+        elements in its way.
     active_rings, active_shrink : int, float
         After the first round, each round moves only the free nodes within ``active_rings``
         elements of an element still missing an aim the gate holds to the initial model (the
@@ -330,6 +337,7 @@ class QualityOptions:
     constraint_tolerance: float = 0.05
     tolerance: float = 0.02
     settling_rounds: int = 6
+    settling_floor: float = 0.5
     active_rings: int = 2
     active_shrink: float = 0.9
 
@@ -732,6 +740,9 @@ class _Objective:
         self.c_rows = np.zeros(0, dtype=np.int64)
         self.c_normals, self.c_offsets = np.zeros((0, 3)), np.zeros(0)
         self.penalty = penalty or _penalty_of(pr)
+        #: ``(log J floor, log collapse floor)``: a point where a solid falls below either is
+        #: refused like an inverted corner (``None``: only the corners' signs count)
+        self.floors: tuple[float, float] | None = None
 
     def set_constraints(
         self,
@@ -747,6 +758,10 @@ class _Objective:
     def __call__(self, v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         pr, h = self.pr, self.h
         scatter_free(self.work, pr.free, v, h)
+        if self.floors is not None and below_floor(
+            self.work, pr.corners, pr.elem_ptr, *self.floors
+        ):
+            return np.inf, np.zeros_like(v)
         value = self.penalty(self.work, self.grad)
         if not np.isfinite(value):
             return np.inf, np.zeros_like(v)
@@ -926,12 +941,15 @@ def optimise_quality(
             return current
         return _Stage(blocks, start_all, active, aims, opt, lengths=whole)
 
-    def run_round(current: _Stage) -> tuple[float, float]:
-        """One L-BFGS run on ``current`` against the fresh constraints; the objective before
-        and after."""
+    def run_round(
+        current: _Stage, floors: tuple[float, float] | None = None
+    ) -> tuple[float, float]:
+        """One L-BFGS run on ``current`` against the fresh constraints (no solid below
+        ``floors``, :class:`_Objective`); the objective before and after."""
         nonlocal iterations, evaluations, rounds
         x = x_all[current.pr.nodes]
         objective = current.objective(x, stiffness, fresh)
+        objective.floors = floors
         v0 = (x[current.pr.free] / current.h).ravel()
         before = objective(v0)[0]
         result = minimize_lbfgs(objective, v0, opt.iterations_per_round)
@@ -960,30 +978,53 @@ def optimise_quality(
             # what is left past a plane is the settling's, on the nodes around it alone
             break
         previous = after
+
+    def floors() -> tuple[float, float]:
+        """Logs of ``settling_floor`` times the worst corner Jacobian and tet collapse around
+        the free nodes now."""
+        x = x_all[pr0.nodes]
+        worst = (
+            _element_jacobians(pr0, x).min(initial=1.0),
+            _tet_collapses(pr0, x).min(initial=1.0),
+        )
+        return tuple(float(np.log(opt.settling_floor * w)) for w in worst)
+
+    def settle(floor: tuple[float, float]) -> float:
+        """Rounds against fresh planes, four times stiffer each, until every node is within
+        the tolerance, no solid taken below ``floor``; the deepest violation left."""
+        nonlocal stiffness, stage
+        for count in range(opt.settling_rounds + 1):
+            if should_cancel():
+                raise Cancelled("quality optimisation cancelled")
+            refresh_constraints()
+            depth = deepest_violation()
+            if depth <= opt.constraint_tolerance or count == opt.settling_rounds:
+                return depth
+            stiffness *= 4.0
+            stage = narrowed(stage, settling=True)
+            run_round(stage, floor)
+        raise AssertionError("unreachable")
+
     if constraints is not None:
         # The planes of the last round were set before that round moved the nodes (some by
         # several millimetres): a node can end past a bone surface its planes did not describe.
-        # Settle against fresh planes, stiffer each time, until every node is within the
-        # tolerance, so the result never hinges on where the round count ran out.
-        for attempt in range(2):
-            for _ in range(opt.settling_rounds):
-                if should_cancel():
-                    raise Cancelled("quality optimisation cancelled")
-                refresh_constraints()
-                if deepest_violation() <= opt.constraint_tolerance:
-                    break
-                stiffness *= 4.0
-                stage = narrowed(stage, settling=True)
-                run_round(stage)
-            refresh_constraints()
-            if attempt or stage is whole or deepest_violation() <= opt.constraint_tolerance:
-                break
+        # Settle against fresh planes, stiffer each time, so the result never hinges on where
+        # the round count ran out. Stiffer planes must not flatten elements for a node they
+        # cannot bring back (the coarse tet demo at 120 deg: a skin node in the crease held
+        # 1.3 mm past its contour plane through twelve rounds while 33 tets went flat, collapse
+        # 1e-9): no settling step may take a solid below half the worst at the rounds' end.
+        floor = floors()
+        depth = settle(floor)
+        if depth > opt.constraint_tolerance and stage is not whole:
             # A node pressed into a bone by the tissue around it cannot come out while only
             # its two element layers move (the hex leg built at 20 deg, at 60 deg: a node
             # held 0.95 mm inside the tibia through six settling rounds): once more over the
-            # whole stage, then settle again.
+            # whole stage, then settle again; kept only if that brought the node out further.
+            before = x_all.copy()
             stage = whole
-            run_round(stage)
+            run_round(stage, floor)
+            if settle(floor) >= depth:
+                x_all[:] = before
     j_after = _element_jacobians(pr0, x_all[pr0.nodes])
     c_after = _tet_collapses(pr0, x_all[pr0.nodes])
     c_aim = pr0.collapse_aim[np.diff(pr0.elem_ptr) == 1]

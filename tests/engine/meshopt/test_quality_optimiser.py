@@ -363,6 +363,36 @@ def test_rounds_end_only_when_fresh_constraints_hold(block_model):
     assert compute_quality(out, model.blocks).n_inverted == 0
 
 
+def test_settling_does_not_flatten_elements_for_a_plane_it_cannot_reach(block_model):
+    """A plane past the block's fixed wall cannot be reached without inverting the elements in
+    between; stiffer settling rounds then only flatten them (the coarse tet demo at 120 deg:
+    33 tets flat, collapse 1e-9, for a skin node held 1.3 mm past its plane). No settling step
+    may take a solid below half the worst Jacobian the rounds ended with; a reachable plane
+    still settles."""
+    model = block_model(4, 4, 4, bone_layers=0, skin=True)
+    coords = model.coords
+    aims = quality_aims(compute_quality(coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(coords - 2.0) < 1.99, axis=1))
+    node = interior[np.argmin(np.linalg.norm(coords[interior] - (3.0, 2.0, 2.0), axis=1))]
+    tolerance = QualityOptions().constraint_tolerance
+
+    def run(wall: float) -> tuple[np.ndarray, float]:
+        def plane(x):
+            return np.array([node]), np.array([[1.0, 0.0, 0.0]]), np.array([wall])
+
+        out, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=plane)
+        q = compute_quality(out, model.blocks)
+        assert q.n_inverted == 0
+        return out, q.worst_jacobian()
+
+    out, worst = run(4.5)  # the wall is at x = 4: at least 0.5 past it
+    assert worst > 0.2  # 0.30 here (the floor); 0.012 when the settling stiffened on
+    assert 4.5 - out[node, 0] > 0.5
+    out, worst = run(3.8)  # reachable, at a price in quality the settling accepts
+    assert 3.8 - out[node, 0] <= tolerance
+    assert 0.2 < worst < 0.5
+
+
 def test_inverted_input_is_refused_and_cancel_raises(block_model):
     model, coords = distorted_block(block_model)
     aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)

@@ -188,6 +188,17 @@ KNOWN_MISSES = {
     ("tet10", 90.0, "quality"): "corner-tet collapse 0.1078 against 0.1082, min dihedral 6.2 "
     "against 6.9 deg, tet aspect 19.5 against 13.5, mid-side offsets up to 1.35 edge lengths "
     "against 0 (coarse 10-node tet demo, 4 December, pinned kernels)",
+    **{
+        (name, 120.0, "export"): f"{count} soft-tissue node(s) deeper than 0.5 mm in a bone "
+        f"(deepest {deepest} mm): the quality optimiser's settling no longer flattens tets to "
+        f"push them out (worst collapse {collapse}; before, 1e-9, 33 tets flat on the tet "
+        "demo) (coarse demo, 5 December, pinned kernels; docs/repositioning.md, known limits)"
+        for name, count, deepest, collapse in (
+            ("tet", 1, "1.0", "0.016"),
+            ("mixed", 1, "0.71", "0.006"),
+            ("tet10", 2, "1.14", "0.018"),
+        )
+    },
     ("hex-flexed20", 120.0, "export"): "1 movable element inverted and 182 soft-tissue nodes "
     "deeper than 0.5 mm in a bone on the leg built at 20 deg and posed to 120 deg (4 December "
     "night, pinned kernels)",
