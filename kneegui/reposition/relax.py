@@ -409,19 +409,26 @@ class ElasticRelaxation:
             )
 
         # 10-node tets: the energy and the quality optimisation see their corner tetrahedra only;
-        # a free mid-side node follows the mean motion of its edge's ends
+        # a free mid-side node sits where it sat at rest relative to its edge's ends
         self._midside, self._midside_ends = _free_midside_nodes(blocks, self.is_free, free)
+        self._midside_offset = self.rest[self._midside] - self.rest[self._midside_ends].mean(axis=1)
 
     def carry_midside(
         self, before: NDArray[np.float64], after: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        """``after`` with each free mid-side node moved from ``before`` by the mean motion of its
-        edge's two corner nodes (a new array when there are any)."""
+        """``after`` with each free mid-side node at the middle of its edge's two corner nodes,
+        plus its offset from there at rest (a new array when there are any; ``before`` is not
+        read, kept for the callers).
+
+        Not moved from ``before`` by its ends' mean motion: the mapping places a mid-side node
+        on its own, up to 1.4 edge lengths off its edge's straight line on the coarse 10-node
+        demo at 90 deg (the gate's mid-side normal offset; 0 at rest), and that offset stayed.
+        The rest offset is not rotated with the edge: straight-sided tets (every deck seen so
+        far) stay straight, a curved one keeps its bulge's size and direction."""
         if len(self._midside) == 0:
             return after
         out = np.array(after, dtype=np.float64, copy=True)
-        moved = after[self._midside_ends] - before[self._midside_ends]  # (M, 2, 3)
-        out[self._midside] = before[self._midside] + moved.mean(axis=1)
+        out[self._midside] = after[self._midside_ends].mean(axis=1) + self._midside_offset
         return out
 
     def midside_out_of_bones(

@@ -41,6 +41,7 @@ from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceD
 from kneegui.reposition.embedding import Embedding, embed_nodes
 from kneegui.reposition.patella_tracking import PatellaSeating
 from kneegui.reposition.relax import (
+    TET10_MIDSIDE,
     ElasticRelaxation,
     RelaxedRegion,
     RelaxOptions,
@@ -616,8 +617,9 @@ class Repositioner:
 
     def _soft_near_joint(self) -> NDArray[np.int64]:
         """Soft-tissue nodes within ``relax_reach`` mean condyle radii of the F-E axis (at rest),
-        and every node of a skin contour one of them belongs to: those the relaxation may move
-        and the in-bone check measures. Computed once.
+        and every node of a skin contour one of them belongs to, and the soft mid-side node of
+        every 10-node tet edge with an end among them: those the relaxation may move and the
+        in-bone check measures. Computed once.
 
         Whole contours, because a contour that is free only on the side nearer the axis (its
         anterior and posterior nodes lie farther from it than its medial and lateral ones) can
@@ -636,6 +638,17 @@ class Repositioner:
                 in_near[near] = True
                 touched = sorted_unique(contours.contour[in_near[contours.nodes]])
                 near = np.union1d(near, contours.nodes[np.isin(contours.contour, touched)])
+            block = self.model.blocks.get("tet10")
+            if block is not None and len(block):
+                # a skin edge's mid-side node is no skin contour node: left behind where the
+                # contour's corners moved 11-14 mm, it sat 1.4 edge lengths off its edge (the
+                # coarse 10-node demo at 90 deg)
+                in_near = np.zeros(self.model.n_nodes, dtype=bool)
+                in_near[near] = True
+                mid = block.conn[:, list(TET10_MIDSIDE)]
+                ends = block.conn[:, [list(e) for e in TET10_MIDSIDE.values()]]
+                extra = mid[in_near[ends].any(axis=2)]
+                near = np.union1d(near, np.intersect1d(extra, self.groups.soft))
             self._near_soft = near
         return self._near_soft
 

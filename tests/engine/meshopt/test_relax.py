@@ -267,8 +267,10 @@ def test_corners_pinned_between_two_bones_are_left_out():
 
 
 def test_free_midside_nodes_of_tet10_follow_their_edge():
-    """The energy sees a 10-node tet's corner tetrahedron; its free mid-side nodes move by the
-    mean motion of their edge's corners, so a curved edge keeps its bow."""
+    """The energy sees a 10-node tet's corner tetrahedron; a free mid-side node sits at the
+    middle of its edge's corners plus its offset from there at rest, so a curved edge keeps its
+    bow and a straight one stays straight whatever the mapping did to the mid-side node (the
+    coarse 10-node demo at 90 deg kept mid-side nodes 1.4 edge lengths off their edges)."""
     corners = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
     edges = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
     mids = np.array([(corners[a] + corners[b]) / 2 for a, b in edges])
@@ -285,6 +287,10 @@ def test_free_midside_nodes_of_tet10_follow_their_edge():
     np.testing.assert_allclose(out[7], rest[7] + [0.5, 1.0, 1.5])  # edge 0-3
     np.testing.assert_allclose(out[4], rest[4])  # edge 0-1 not free: stays
     np.testing.assert_allclose(out[:4], moved[:4])
+    mapped = rest.copy()
+    mapped[7] += [3.0, 0.0, 0.0]  # the mapping put the mid-side node off its straight edge
+    out = relax.carry_midside(mapped, moved)
+    np.testing.assert_allclose(out[7], (moved[0] + moved[3]) / 2)
 
 
 def _box_surface(lo, hi) -> np.ndarray:
