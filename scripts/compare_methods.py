@@ -189,7 +189,8 @@ def measure_variants(
             "load_1min": os.getloadavg()[0],
             "initial": {
                 "worst_hex_jacobian": _worst(q0, hexes, "jacobian_corner", min),
-                "worst_tet_aspect": _worst(q0, TET_TYPES, "aspect"),
+                "worst_tet_aspect": _worst(q0, TET_TYPES, "tet_aspect"),
+                "worst_tet_vol_skew": _worst(q0, TET_TYPES, "vol_skew"),
                 "worst_tet_collapse": _worst(q0, TET_TYPES, "tet_collapse", min),
                 "worst_tet_dihedral_min": _worst(q0, TET_TYPES, "dihedral_min", min),
                 "worst_tet_dihedral_max": _worst(q0, TET_TYPES, "dihedral_max"),
@@ -223,7 +224,8 @@ def measure_variants(
                     "inverted_locked": inv_locked,
                     "inverted_movable": inv_movable,
                     "worst_hex_jacobian": _worst(q, hexes, "jacobian_corner", min),
-                    "worst_tet_aspect": _worst(q, TET_TYPES, "aspect"),
+                    "worst_tet_aspect": _worst(q, TET_TYPES, "tet_aspect"),
+                    "worst_tet_vol_skew": _worst(q, TET_TYPES, "vol_skew"),
                     "worst_tet_collapse": _worst(q, TET_TYPES, "tet_collapse", min),
                     "worst_tet_dihedral_min": _worst(q, TET_TYPES, "dihedral_min", min),
                     "worst_tet_dihedral_max": _worst(q, TET_TYPES, "dihedral_max"),
@@ -268,8 +270,9 @@ def variants_markdown(res: dict) -> str:
         "free ones no valid position at that flexion: no repositioner can save them) and "
         '*movable* (the repositioner\'s failure). "in bone" = interior soft-tissue nodes '
         f"deeper than {PENETRATION_TOLERANCE} mm (in the model's unit) inside a bone; p95 "
-        "\\|ΔV\\| = 95th percentile of the soft solids' volume change; tet collapse and "
-        "dihedral angles as docs/quality.md defines them (worst of the tets; – without tets); "
+        "\\|ΔV\\| = 95th percentile of the soft solids' volume change; tet aspect (longest "
+        "edge / shortest altitude), tet collapse, volumetric skew and dihedral angles as "
+        "docs/quality.md defines them (worst of the tets; – without tets); "
         "s = seconds per export (read, setup and precompute excluded) on the machine's two "
         "cores, with the 1-minute load average when the variant started.",
         "",
@@ -286,23 +289,25 @@ def variants_markdown(res: dict) -> str:
             ),
             "",
             f"Initial worst hex corner Jacobian {_fmt(i0['worst_hex_jacobian'], '.3f')}, worst "
-            f"tet aspect {_fmt(i0['worst_tet_aspect'], '.2f')}, collapse "
-            f"{_measured(i0, 'worst_tet_collapse', '.3f')}, dihedral "
+            f"tet aspect {_fmt(i0['worst_tet_aspect'], '.3g')}, collapse "
+            f"{_measured(i0, 'worst_tet_collapse', '.3f')}, vol skew "
+            f"{_fmt(i0.get('worst_tet_vol_skew'), '.4f')}, dihedral "
             f"{_dihedrals(i0)}, {i0['inverted']} inverted; precompute "
             f"{e['precompute_s']:.1f} s"
             + (f"; load {e['load_1min']:.1f}" if "load_1min" in e else "")
             + ".",
             "",
             "| angle | inverted (locked / movable) | worst hex J | worst tet aspect | "
-            "worst tet collapse | tet dihedral min / max ° | in bone | "
+            "worst tet collapse | worst tet vol skew | tet dihedral min / max ° | in bone | "
             "p95 \\|ΔV\\| % | ΔV > 25 % | gate | s |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in e["angles"]:
             lines.append(
                 f"| {r['angle']}° | {r['inverted_locked']} / {r['inverted_movable']} | "
-                f"{_fmt(r['worst_hex_jacobian'], '.3f')} | {_fmt(r['worst_tet_aspect'], '.2f')} | "
-                f"{_measured(r, 'worst_tet_collapse', '.3f')} | {_dihedrals(r)} | "
+                f"{_fmt(r['worst_hex_jacobian'], '.3f')} | {_fmt(r['worst_tet_aspect'], '.3g')} | "
+                f"{_measured(r, 'worst_tet_collapse', '.3f')} | "
+                f"{_fmt(r.get('worst_tet_vol_skew'), '.4f')} | {_dihedrals(r)} | "
                 f"{r['nodes_inside_bones']} | {r['p95_element_volume_change_pct']:.1f} | "
                 f"{r['elements_volume_change_over_25_pct']} | "
                 f"{'pass' if r['gate_passed'] else 'fail'} | {r['seconds']:.0f} |"

@@ -13,11 +13,21 @@ from numba import njit, prange
 
 from kneegui.quality.kernels import TET_COLLAPSE_NORM
 
+#: ``log (V / V_ideal) = LOG_RATIO_SCALE + 4 log d - 3 log |M|`` for a tet's six-volume ``d`` and
+#: ``M = |a|^2 (b x e) + |b|^2 (e x a) + |e|^2 (a x b)`` (``2 d`` times the circumcentre seen from
+#: the corner node), ``V_ideal`` the regular tet inscribed in the circumsphere
+LOG_RATIO_SCALE = math.log(1.5 * math.sqrt(3.0))
 #: ``log collapse = log d - 0.75 log |n|^2 + LOG_COLLAPSE_SCALE`` for a tet's six-volume ``d``
 #: and the doubled area vector ``n`` of a face (``h / sqrt(A) = sqrt(2) d / |n|^1.5``).
 LOG_COLLAPSE_SCALE = 0.5 * math.log(2.0) - math.log(TET_COLLAPSE_NORM)
 #: The face opposite each corner of a tet (its other three corners).
 TET_OPPOSITE = np.array([(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)], dtype=np.int64)
+#: A tetrahedron's six edges ``(a, b)`` and the two faces (by opposite node, as
+#: :data:`TET_OPPOSITE`) that meet along each: those opposite the other two nodes.
+TET_EDGES = np.array(
+    [(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)],
+    dtype=np.int64,
+)
 
 
 @njit(cache=True, nogil=True)
@@ -27,6 +37,9 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
     elem_ptr,
     log_aim,
     log_collapse_aim,
+    log_sine_aim,
+    log_ratio_aim,
+    element_weight,
     log_volume,
     volume_band,
     volume_weight,
@@ -46,17 +59,27 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
     (an element of one corner) should reach, ``-inf`` for none: its penalty is
     ``sum_i max(0, log aim - log c_i)^2`` over the four nodes' ``c_i = h_i / sqrt(A_i)``
     (normalised as :data:`~kneegui.quality.kernels.TET_COLLAPSE_NORM`), so a sliver with fair
-    faces, which no face aspect sees, costs; ``quads`` (Q, 4) shell nodes whose corner
-    determinants use the quad's own diagonal normal, ``quad_triples`` (4, 3) their corners,
-    ``quad_log_aim`` (Q,). Fills ``grad`` (S, 3). Returns ``inf`` (and a meaningless
-    gradient) when a corner determinant is not positive: the solver treats that as a rejected
-    step.
+    faces, which no face aspect sees, costs; ``log_sine_aim`` (E,) the log of the sine every
+    dihedral angle of a tetrahedron should keep (``-inf`` for none): its penalty is
+    ``sum_edges max(0, log aim - log sin)^2`` with ``sin = d L / (|n_k| |n_l|)`` at the edge
+    of length ``L`` between the faces of normals ``n_k``, ``n_l`` (a sharp and a flat
+    dihedral angle both have a small sine: a cap, whose collapse can be fair, costs too);
+    ``log_ratio_aim`` (E,) the log of the ratio ``V / V_ideal`` (1 - the volumetric skew:
+    ``V_ideal`` the regular tet in the circumsphere) to reach, ``-inf`` for none, penalised as
+    ``max(0, log aim - log ratio)^2``; ``element_weight`` (E,) weighs each element's corner
+    and tet terms (not its volume term);
+    ``quads`` (Q, 4) shell nodes whose corner determinants use the quad's own diagonal normal,
+    ``quad_triples`` (4, 3) their corners, ``quad_log_aim`` (Q,). Fills ``grad`` (S, 3).
+    Returns ``inf`` (and a meaningless gradient) when a corner determinant is not positive:
+    the solver treats that as a rejected step.
     """
     grad[:, :] = 0.0
     total = 0.0
     dets = np.empty(8)
     logs = np.empty(8)
     g_log = np.empty(8)
+    normals = np.empty((4, 3))
+    nns = np.empty(4)
     for e in range(elem_ptr.shape[0] - 1):
         p0 = elem_ptr[e]
         k = elem_ptr[e + 1] - p0
@@ -70,14 +93,15 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             logs[i] = math.log(d)
             g_log[i] = 0.0
         aim = log_aim[e]
+        tet_weight = element_weight[e]
         for i in range(k):
             for j in range(k):
                 u = aim - logs[i] + logs[j]
                 if i != j and u > 0.0:
-                    total += u * u
-                    g_log[i] -= 2.0 * u
-                    g_log[j] += 2.0 * u
-        if k == 1 and log_collapse_aim[e] > -math.inf:
+                    total += tet_weight * u * u
+                    g_log[i] -= 2.0 * tet_weight * u
+                    g_log[j] += 2.0 * tet_weight * u
+        if k == 1 and (log_collapse_aim[e] > -math.inf or log_sine_aim[e] > -math.inf):
             c = corners[p0]
             for f in range(4):
                 i0 = c[TET_OPPOSITE[f, 0]]
@@ -85,12 +109,97 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
                 i2 = c[TET_OPPOSITE[f, 2]]
                 nx, ny, nz = _normal(x, i0, i1, i2)
                 nn = nx * nx + ny * ny + nz * nz
+                normals[f, 0] = nx
+                normals[f, 1] = ny
+                normals[f, 2] = nz
+                nns[f] = nn
                 u = log_collapse_aim[e] - (logs[0] - 0.75 * math.log(nn) + LOG_COLLAPSE_SCALE)
                 if u > 0.0:
-                    total += u * u
-                    g_log[0] -= 2.0 * u
+                    total += tet_weight * u * u
+                    g_log[0] -= 2.0 * tet_weight * u
                     # d log|n| = n . dn / |n|^2, and log c falls by 1.5 log|n|
-                    _cross_grad(x, grad, i0, i1, i2, nx, ny, nz, 3.0 * u / nn)
+                    _cross_grad(x, grad, i0, i1, i2, nx, ny, nz, 3.0 * tet_weight * u / nn)
+            if log_sine_aim[e] > -math.inf:
+                for m in range(6):
+                    a = c[TET_EDGES[m, 0]]
+                    b = c[TET_EDGES[m, 1]]
+                    lx = x[b, 0] - x[a, 0]
+                    ly = x[b, 1] - x[a, 1]
+                    lz = x[b, 2] - x[a, 2]
+                    ll = lx * lx + ly * ly + lz * lz
+                    fk = TET_EDGES[m, 2]
+                    fl = TET_EDGES[m, 3]
+                    # log sin = log d + log L - log|n_k| - log|n_l|
+                    u = log_sine_aim[e] - (logs[0] + 0.5 * math.log(ll / (nns[fk] * nns[fl])))
+                    if u > 0.0:
+                        w = 2.0 * tet_weight * u
+                        total += tet_weight * u * u
+                        g_log[0] -= w
+                        s_l = w / ll  # d(u^2)/d b = -2u (b - a) / L^2
+                        grad[b, 0] -= s_l * lx
+                        grad[b, 1] -= s_l * ly
+                        grad[b, 2] -= s_l * lz
+                        grad[a, 0] += s_l * lx
+                        grad[a, 1] += s_l * ly
+                        grad[a, 2] += s_l * lz
+                        for f in (fk, fl):
+                            # d(u^2) = 2u d log|n_f| = 2u n . dn / |n|^2
+                            _cross_grad(
+                                x,
+                                grad,
+                                c[TET_OPPOSITE[f, 0]],
+                                c[TET_OPPOSITE[f, 1]],
+                                c[TET_OPPOSITE[f, 2]],
+                                normals[f, 0],
+                                normals[f, 1],
+                                normals[f, 2],
+                                w / nns[f],
+                            )
+        if k == 1 and log_ratio_aim[e] > -math.inf:
+            ax, ay, az, bx, by, bz, ex, ey, ez = _corner_vectors(x, corners[p0])
+            aa = ax * ax + ay * ay + az * az
+            bb = bx * bx + by * by + bz * bz
+            ee = ex * ex + ey * ey + ez * ez
+            bex, bey, bez = by * ez - bz * ey, bz * ex - bx * ez, bx * ey - by * ex
+            eax, eay, eaz = ey * az - ez * ay, ez * ax - ex * az, ex * ay - ey * ax
+            abx, aby, abz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            mx = aa * bex + bb * eax + ee * abx
+            my = aa * bey + bb * eay + ee * aby
+            mz = aa * bez + bb * eaz + ee * abz
+            mm = mx * mx + my * my + mz * mz
+            u = log_ratio_aim[e] - (LOG_RATIO_SCALE + 4.0 * logs[0] - 1.5 * math.log(mm))
+            if u > 0.0:
+                total += tet_weight * u * u
+                g_log[0] -= 8.0 * tet_weight * u
+                s = 6.0 * tet_weight * u / mm  # d(u^2) = ... + 6u M . dM / |M|^2
+                m_be = mx * bex + my * bey + mz * bez
+                m_ea = mx * eax + my * eay + mz * eaz
+                m_ab = mx * abx + my * aby + mz * abz
+                # dM . M over a: 2 (M . b x e) a + |b|^2 (M x e) + |e|^2 (b x M)
+                gax = s * (2.0 * m_be * ax + bb * (my * ez - mz * ey) + ee * (by * mz - bz * my))
+                gay = s * (2.0 * m_be * ay + bb * (mz * ex - mx * ez) + ee * (bz * mx - bx * mz))
+                gaz = s * (2.0 * m_be * az + bb * (mx * ey - my * ex) + ee * (bx * my - by * mx))
+                # over b: |a|^2 (e x M) + 2 (M . e x a) b + |e|^2 (M x a)
+                gbx = s * (aa * (ey * mz - ez * my) + 2.0 * m_ea * bx + ee * (my * az - mz * ay))
+                gby = s * (aa * (ez * mx - ex * mz) + 2.0 * m_ea * by + ee * (mz * ax - mx * az))
+                gbz = s * (aa * (ex * my - ey * mx) + 2.0 * m_ea * bz + ee * (mx * ay - my * ax))
+                # over e: |a|^2 (M x b) + |b|^2 (a x M) + 2 (M . a x b) e
+                gex = s * (aa * (my * bz - mz * by) + bb * (ay * mz - az * my) + 2.0 * m_ab * ex)
+                gey = s * (aa * (mz * bx - mx * bz) + bb * (az * mx - ax * mz) + 2.0 * m_ab * ey)
+                gez = s * (aa * (mx * by - my * bx) + bb * (ax * my - ay * mx) + 2.0 * m_ab * ez)
+                c = corners[p0]
+                grad[c[1], 0] += gax
+                grad[c[1], 1] += gay
+                grad[c[1], 2] += gaz
+                grad[c[2], 0] += gbx
+                grad[c[2], 1] += gby
+                grad[c[2], 2] += gbz
+                grad[c[3], 0] += gex
+                grad[c[3], 1] += gey
+                grad[c[3], 2] += gez
+                grad[c[0], 0] -= gax + gbx + gex
+                grad[c[0], 1] -= gay + gby + gey
+                grad[c[0], 2] -= gaz + gbz + gez
         g_volume = 0.0
         if volume_band[e] < math.inf:
             mean = 0.0
@@ -452,6 +561,9 @@ def penalty_in_parts(  # pragma: no cover - compiled
     elem_ptr,
     log_aim,
     log_collapse_aim,
+    log_sine_aim,
+    log_ratio_aim,
+    element_weight,
     log_volume,
     volume_band,
     volume_weight,
@@ -482,6 +594,9 @@ def penalty_in_parts(  # pragma: no cover - compiled
             elem_ptr[e0 : e1 + 1] - c0,
             log_aim[e0:e1],
             log_collapse_aim[e0:e1],
+            log_sine_aim[e0:e1],
+            log_ratio_aim[e0:e1],
+            element_weight[e0:e1],
             log_volume[e0:e1],
             volume_band[e0:e1],
             volume_weight,

@@ -63,11 +63,16 @@ def test_penalty_in_parts_is_the_same_on_one_thread_and_matches_one_pass(block_m
         (e0, e1), (q0, q1), (f0, f1) = e_cut[k : k + 2], q_cut[k : k + 2], f_cut[k : k + 2]
         c0, c1 = pr.elem_ptr[e0], pr.elem_ptr[e1]
         corner_args = (pr.corners[c0:c1], pr.elem_ptr[e0 : e1 + 1] - c0)
-        element_args = (pr.log_aim, pr.log_collapse_aim, pr.log_volume, pr.volume_band)
         value = corner_ratio_penalty(
             x,
             *corner_args,
-            *(a[e0:e1] for a in element_args),
+            pr.log_aim[e0:e1],
+            pr.log_collapse_aim[e0:e1],
+            pr.log_sine_aim[e0:e1],
+            pr.log_ratio_aim[e0:e1],
+            pr.element_weight[e0:e1],
+            pr.log_volume[e0:e1],
+            pr.volume_band[e0:e1],
             pr.volume_weight,
             pr.quads[q0:q1],
             QUAD_TRIPLES,

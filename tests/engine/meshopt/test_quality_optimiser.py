@@ -54,14 +54,20 @@ def uniform_aims(blocks, jacobian, aspect=np.inf, warpage=180.0, skew=90.0) -> Q
         return {etype: np.full(len(b), float(value)) for etype, b in blocks.items()}
 
     return QualityAims(
-        per(jacobian), per(aspect), per(warpage), per(skew), tet_collapse=per(jacobian)
+        per(jacobian),
+        per(aspect),
+        per(warpage),
+        per(skew),
+        tet_collapse=per(jacobian),
+        tet_dihedral_sine=per(jacobian),
+        tet_vol_skew=per(1.0 - jacobian),
     )
 
 
 def corner_args(pr):
     """The corner penalty's arguments after the coordinates (compiled and NumPy orders)."""
     compiled = pr.corner_args()
-    reference = (*compiled[:7], pr.quads, pr.quad_log_aim)
+    reference = (*compiled[:10], pr.quads, pr.quad_log_aim)
     return compiled, reference
 
 
@@ -86,6 +92,7 @@ def test_compiled_corner_penalty_equals_numpy_reference_and_finite_differences(v
                               "volume_change": volume_change})  # fmt: skip
     pr = _build_problem(blocks, len(coords), np.arange(len(coords)), aims,
                         QualityOptions(volume_weight=3.0))  # fmt: skip
+    pr.element_weight[:] = np.linspace(0.5, 3.0, len(pr.element_weight))  # as the gate boosts
     assert np.isfinite(pr.volume_band).any() == (volume_change is not None)
     compiled, reference = corner_args(pr)
     x = coords[pr.nodes]
@@ -153,6 +160,9 @@ def test_penalties_vanish_exactly_inside_the_aims(seed):
         for m in ("jacobian", "aspect", "warpage", "skew")
     }
     measured["tet_collapse"] = {"tet4": q["tet4"].tet_collapse.copy()}
+    dihedral = np.radians([q["tet4"].dihedral_min, q["tet4"].dihedral_max])
+    measured["tet_dihedral_sine"] = {"tet4": np.sin(dihedral).min(axis=0)}
+    measured["tet_vol_skew"] = {"tet4": q["tet4"].vol_skew.copy()}
     margin = QualityOptions().margin
     free = np.arange(len(coords))
     loose = QualityAims(
@@ -161,6 +171,9 @@ def test_penalties_vanish_exactly_inside_the_aims(seed):
         {e: v + 1e-6 for e, v in measured["warpage"].items()},
         {e: v + 1e-6 for e, v in measured["skew"].items()},
         tet_collapse={"tet4": measured["tet_collapse"]["tet4"] - 1e-6 - margin},
+        tet_dihedral_sine={"tet4": measured["tet_dihedral_sine"]["tet4"] - 1e-6 - margin},
+        # its aim is on 1 - skew, the margin asks for that much more of it, relatively
+        tet_vol_skew={"tet4": 1.0 - (1.0 - measured["tet_vol_skew"]["tet4"] - 1e-9) / (1 + margin)},
     )
     pr = _build_problem(blocks, len(coords), free, loose, QualityOptions())
     assert total_penalty(pr, coords[pr.nodes])[0] == 0.0
@@ -170,11 +183,15 @@ def test_penalties_vanish_exactly_inside_the_aims(seed):
         ("warpage", -1),
         ("skew", -1),
         ("tet_collapse", +1),
+        ("tet_dihedral_sine", +1),
+        ("tet_vol_skew", -1),
     ):
         values = {e: v.copy() for e, v in getattr(loose, metric).items()}
-        bumped = "tet4" if metric == "tet_collapse" else "hex8"
-        if metric in ("jacobian", "tet_collapse"):
+        bumped = "tet4" if metric.startswith("tet_") else "hex8"
+        if metric in ("jacobian", "tet_collapse", "tet_dihedral_sine"):
             values[bumped] = measured[metric][bumped] + 1e-3 - margin
+        elif metric == "tet_vol_skew":
+            values[bumped] = 1.0 - (1.0 - measured[metric][bumped]) * 1.001 / (1 + margin)
         else:
             values[bumped] = measured[metric][bumped] + sign * 1e-3
         strict = QualityAims(**{**loose.__dict__, metric: values})
@@ -201,6 +218,49 @@ def test_a_sliver_with_fair_faces_is_lifted_to_its_collapse_aim():
     np.testing.assert_array_equal(out[:3], coords[:3])
 
 
+def test_a_sliver_is_opened_to_its_dihedral_aim_without_a_collapse_aim():
+    """The dihedral-sine term alone (no collapse aim) lifts a sliver's dihedral angles, near 0
+    and 180 deg, into the band its sine asks for."""
+    coords = np.array([(1.0, 0, 0), (-1.0, 0, 0), (0, -1.0, 0.02), (0, 1.0, 0.02)])
+    blocks = {"tet4": ElementBlock("tet4", np.array([1]), np.array([1]), np.arange(4)[None, :])}
+    q = compute_quality(coords, blocks)["tet4"]
+    assert q.dihedral_min[0] < 3.0 and q.dihedral_max[0] > 177.0
+    aims = quality_aims(compute_quality(coords, blocks), blocks)
+    aims = QualityAims(**{**aims.__dict__, "tet_collapse": {"tet4": np.array([0.0])},
+                          "tet_dihedral_sine": {"tet4": np.array([0.5])}})  # fmt: skip
+    out, _ = optimise_quality(coords, blocks, np.array([3]), aims)
+    after = compute_quality(out, blocks)["tet4"]
+    assert after.dihedral_min[0] >= 30.0 - 0.5 and after.dihedral_max[0] <= 150.0 + 0.5
+    np.testing.assert_array_equal(out[:3], coords[:3])
+
+
+def test_an_element_past_the_gate_is_weighed_up_until_it_clears_it():
+    """A flat cap held by a volume aim: at the base weight the collapse term and the volume
+    term balance with the cap below the gate's level (the initial model's worst); weighed up
+    round after round it clears that level, the volume giving way. Out of the gate's reach it
+    is left to the aims' balance."""
+    s3 = np.sqrt(3.0)
+    coords = np.array([(-1.0, -1 / s3, 0), (1.0, -1 / s3, 0), (0, 2 / s3, 0), (0, 0, 0.1)])
+    blocks = {"tet4": ElementBlock("tet4", np.array([1]), np.array([1]), np.arange(4)[None, :])}
+    q0 = compute_quality(coords, blocks)
+    base = quality_aims(q0, blocks, rest_coords=coords, volume_change=0.0)
+    free = np.array([3])
+
+    def collapse(gate: float, **options) -> float:
+        aims = QualityAims(**{**base.__dict__, "tet_collapse": {"tet4": np.array([0.3])},
+                              "tet_dihedral_sine": {}, "tet_vol_skew": {},
+                              "gate": {"tet_collapse": gate}})  # fmt: skip
+        options = QualityOptions(volume_weight=30.0, **options)
+        out, _ = optimise_quality(coords, blocks, free, aims, options=options)
+        return float(compute_quality(out, blocks)["tet4"].tet_collapse[0])
+
+    held = collapse(1.0, gate_rounds=0)  # the aims' balance alone
+    assert held > 1.03 * q0["tet4"].tet_collapse[0]  # the collapse term lifted it a little
+    gate = held / 0.8  # within the default reach (a quarter) of it
+    assert collapse(gate) > gate * (1.0 + QualityOptions().gate_margin)
+    assert collapse(gate, gate_reach=0.1) == held  # out of reach: nothing weighed up
+
+
 def test_quality_aims_ask_tets_for_their_initial_collapse_up_to_the_warn_level():
     coords = np.array([(1.0, 0, 0), (-1.0, 0, 0), (0, -1.0, 0.05), (0, 1.0, 0.05)])
     coords = np.vstack([coords, coords * [1, 1, 20] + [5, 0, 0]])  # a sliver and a fair tet
@@ -210,6 +270,12 @@ def test_quality_aims_ask_tets_for_their_initial_collapse_up_to_the_warn_level()
     aims = quality_aims(compute_quality(coords, blocks), blocks)
     assert q.tet_collapse[0] < 0.2 < q.tet_collapse[1]
     np.testing.assert_allclose(aims.tet_collapse["tet4"], [q.tet_collapse[0], 0.2])
+    # dihedral angles: the sliver's own (its sharper side), the fair tet's warn band (10-160 deg)
+    assert q.dihedral_min[1] > 10.0 and q.dihedral_max[1] < 160.0
+    sliver = min(np.sin(np.radians(q.dihedral_min[0])), np.sin(np.radians(q.dihedral_max[0])))
+    np.testing.assert_allclose(
+        aims.tet_dihedral_sine["tet4"], [sliver, np.sin(np.radians(10.0))], rtol=1e-12
+    )
 
 
 # ---------------------------------------------------------------------- aims and region

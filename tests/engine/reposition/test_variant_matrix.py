@@ -29,6 +29,7 @@ from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.checks import penetrating, surface_triangles
 from kneegui.reposition.pipeline import pose_model
 from kneegui.reposition.preflight import preflight_of
+from kneegui.reposition.relax import TET10_MIDSIDE
 from kneegui.setup import load_setup
 
 ANGLES = (0.0, 30.0, 60.0, 90.0, 120.0)
@@ -180,24 +181,15 @@ KNOWN_MISSES = {
     "24.85 % against the 25 % bound with the pinned kernels since the untangling's rounds focus "
     "on the tangles (24.996 % before, 25.3 % with this machine's AVX-512 kernels): within a "
     "path of the bound, so not asserted (issue 23, items 4 and 6)",
-    ("mixed", 90.0, "quality"): "worst hex corner Jacobian 0.402 against the initial 0.428 "
-    "(tet collapse 0.105 against 0.108)",
-    ("tet", 90.0, "quality"): "worst tet collapse 0.1063 against the initial 0.1082, min dihedral "
-    "6.1 against 6.9 deg, tet aspect 20.4 against 13.5 (coarse tet demo, 4 December, pinned "
-    "kernels; docs/repositioning.md, known limits)",
-    ("tet10", 90.0, "quality"): "corner-tet collapse 0.1078 against 0.1082, min dihedral 6.2 "
-    "against 6.9 deg, tet aspect 19.5 against 13.5, mid-side offsets up to 1.35 edge lengths "
-    "against 0 (coarse 10-node tet demo, 4 December, pinned kernels)",
+    ("tet10", 90.0, "quality"): "the corner tets meet every tet measure, but mid-side nodes put "
+    "back on a bone's surface sit 0.43 edge lengths off their edges (normal and tangent "
+    "offsets, against 0; coarse 10-node tet demo, 5 December, pinned kernels)",
     **{
         (name, 120.0, "export"): f"{count} soft-tissue node(s) deeper than 0.5 mm in a bone "
         f"(deepest {deepest} mm): the quality optimiser's settling no longer flattens tets to "
         f"push them out (worst collapse {collapse}; before, 1e-9, 33 tets flat on the tet "
         "demo) (coarse demo, 5 December, pinned kernels; docs/repositioning.md, known limits)"
-        for name, count, deepest, collapse in (
-            ("tet", 1, "1.0", "0.016"),
-            ("mixed", 1, "0.71", "0.006"),
-            ("tet10", 2, "1.14", "0.018"),
-        )
+        for name, count, deepest, collapse in (("mixed", 2, "0.75", "0.007"),)
     },
     ("hex-flexed20", 120.0, "export"): "1 movable element inverted and 182 soft-tissue nodes "
     "deeper than 0.5 mm in a bone on the leg built at 20 deg and posed to 120 deg (4 December "
@@ -237,9 +229,30 @@ def test_quality_at_90_no_worse_than_initial(cells, name, angle):
     cell = cells(name, angle)
     assert cell.tet_measures or cell.initial_worst_jacobian < 1.0 - GATE_MARGIN, cell
     if cell.initial_worst_jacobian < 1.0 - GATE_MARGIN:
-        assert cell.worst_jacobian >= cell.initial_worst_jacobian + GATE_MARGIN, cell
+        # or the initial worst element itself, carried rigidly (the mixed demo's calf hex,
+        # equal to the initial value to rounding)
+        carried = abs(cell.worst_jacobian - cell.initial_worst_jacobian) <= 1e-9
+        assert carried or cell.worst_jacobian >= cell.initial_worst_jacobian + GATE_MARGIN, cell
     for measure, (worst, initial, low_bad) in cell.tet_measures.items():
         assert (worst >= initial) if low_bad else (worst <= initial), (measure, cell)
+
+
+def test_the_relaxed_nodes_take_the_mid_side_nodes_of_their_edges(repositioners):
+    """A 10-node tet's mid-side node between two skin contour nodes is no contour node; the
+    relaxation moves it with its edge (left where the mapping put it, such nodes of the coarse
+    10-node demo ended 1.4 edge lengths off their edges at 90 deg)."""
+    variant, rep = repositioners("tet10")
+    n = variant.model.n_nodes
+    near = np.zeros(n, dtype=bool)
+    near[rep._soft_near_joint()] = True
+    soft = np.zeros(n, dtype=bool)
+    soft[rep.groups.soft] = True
+    block = variant.model.blocks["tet10"]
+    mid = block.conn[:, list(TET10_MIDSIDE)]
+    ends = block.conn[:, [list(e) for e in TET10_MIDSIDE.values()]]
+    carried = near[ends].any(axis=2) & soft[mid]
+    assert carried.sum() > 1000
+    assert near[mid[carried]].all()
 
 
 def test_length_options_scale_with_the_model(repositioners):
