@@ -188,18 +188,7 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
                 gey = s * (aa * (mz * bx - mx * bz) + bb * (az * mx - ax * mz) + 2.0 * m_ab * ey)
                 gez = s * (aa * (mx * by - my * bx) + bb * (ax * my - ay * mx) + 2.0 * m_ab * ez)
                 c = corners[p0]
-                grad[c[1], 0] += gax
-                grad[c[1], 1] += gay
-                grad[c[1], 2] += gaz
-                grad[c[2], 0] += gbx
-                grad[c[2], 1] += gby
-                grad[c[2], 2] += gbz
-                grad[c[3], 0] += gex
-                grad[c[3], 1] += gey
-                grad[c[3], 2] += gez
-                grad[c[0], 0] -= gax + gbx + gex
-                grad[c[0], 1] -= gay + gby + gey
-                grad[c[0], 2] -= gaz + gbz + gez
+                _add_corner_gradient(grad, c, gax, gay, gaz, gbx, gby, gbz, gex, gey, gez)
         g_volume = 0.0
         if volume_band[e] < math.inf:
             mean = 0.0
@@ -229,18 +218,7 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             gex = s * (ay * bz - az * by)
             gey = s * (az * bx - ax * bz)
             gez = s * (ax * by - ay * bx)
-            grad[c[1], 0] += gax
-            grad[c[1], 1] += gay
-            grad[c[1], 2] += gaz
-            grad[c[2], 0] += gbx
-            grad[c[2], 1] += gby
-            grad[c[2], 2] += gbz
-            grad[c[3], 0] += gex
-            grad[c[3], 1] += gey
-            grad[c[3], 2] += gez
-            grad[c[0], 0] -= gax + gbx + gex
-            grad[c[0], 1] -= gay + gby + gey
-            grad[c[0], 2] -= gaz + gbz + gez
+            _add_corner_gradient(grad, c, gax, gay, gaz, gbx, gby, gbz, gex, gey, gez)
     for q in range(quads.shape[0]):
         n0 = quads[q, 0]
         n1 = quads[q, 1]
@@ -285,6 +263,26 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             wx, wy, wz = _normal(x, c, a, b)
             _diagonal_cross_grad(x, grad, n0, n1, n2, n3, px, py, pz, qx, qy, qz, wx, wy, wz, s)
     return total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _add_corner_gradient(
+    grad, c, gax, gay, gaz, gbx, gby, gbz, gex, gey, gez
+):  # pragma: no cover - compiled
+    """Add a corner's gradient over its edge vectors ``a, b, e`` (``x[c[j]] - x[c[0]]``) to
+    its four nodes: each edge end gets its own, the corner node minus their sum."""
+    grad[c[1], 0] += gax
+    grad[c[1], 1] += gay
+    grad[c[1], 2] += gaz
+    grad[c[2], 0] += gbx
+    grad[c[2], 1] += gby
+    grad[c[2], 2] += gbz
+    grad[c[3], 0] += gex
+    grad[c[3], 1] += gey
+    grad[c[3], 2] += gez
+    grad[c[0], 0] -= gax + gbx + gex
+    grad[c[0], 1] -= gay + gby + gey
+    grad[c[0], 2] -= gaz + gbz + gez
 
 
 @njit(cache=True, nogil=True, inline="always")
