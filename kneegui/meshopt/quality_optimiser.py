@@ -36,6 +36,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -101,8 +102,7 @@ class QualityAims:
     minus that) and the volumetric skew not to exceed; ``gate``, the initial model's worst of
     what the quality gate holds the export to (``jacobian`` of the solids other than tets,
     ``tet_collapse``, ``dihedral_min``, ``dihedral_max``, ``vol_skew``, ``tet_aspect``): the
-    optimiser weighs
-    an element past one of them more heavily each round it stays there."""
+    optimiser weighs an element past one of them more heavily each round it stays there."""
 
     jacobian: Mapping[str, NDArray[np.float64]]
     aspect: Mapping[str, NDArray[np.float64]]
@@ -543,6 +543,18 @@ def _element_offsets(blocks: Mapping[str, ElementBlock]) -> dict[str, int]:
     return out
 
 
+#: The tet measures the gate's weights watch: each as its distance from a flat tet (the
+#: dihedral angles' from 0 or 180 deg, the skew's from 1), so that a margin and a reach are
+#: fractions of that distance, and whether low values are the bad ones.
+_TET_GATE_MEASURES: dict[str, tuple[Callable[[Any], Any], bool]] = {
+    "tet_collapse": (lambda v: v, True),
+    "dihedral_min": (lambda v: v, True),
+    "dihedral_max": (lambda v: 180.0 - v, True),
+    "vol_skew": (lambda v: 1.0 - v, True),
+    "tet_aspect": (lambda v: v, False),
+}
+
+
 def _gate_misses(
     pr: _Problem, x: NDArray[np.float64], gate: Mapping[str, float], margin: float, reach: float
 ) -> NDArray[np.bool_]:
@@ -555,10 +567,10 @@ def _gate_misses(
 
     def past(values: NDArray, level: float, low_bad: bool) -> NDArray[np.bool_]:
         if low_bad:
-            bad = values < level * (1.0 + margin)
-            return bad if values.min(initial=np.inf) >= (1.0 - reach) * level else bad & False
-        bad = values > level * (1.0 - margin)
-        return bad if values.max(initial=-np.inf) <= level / (1.0 - reach) else bad & False
+            in_reach = values.min(initial=np.inf) >= (1.0 - reach) * level
+            return (values < level * (1.0 + margin)) & in_reach
+        in_reach = values.max(initial=-np.inf) <= level / (1.0 - reach)
+        return (values > level * (1.0 - margin)) & in_reach
 
     solids = counts > 1
     if "jacobian" in gate and solids.any():
@@ -568,22 +580,10 @@ def _gate_misses(
     if len(tets):
         c = pr.corners[pr.elem_ptr[tets]]
         m = tet_measures_only([x[c[:, j]].T for j in range(4)])
-        measures = {
-            "tet_collapse": (m["tet_collapse"], True),
-            "dihedral_min": (m["dihedral_min"], True),
-            "dihedral_max": (180.0 - m["dihedral_max"], True),
-            "vol_skew": (1.0 - m["vol_skew"], True),
-            "tet_aspect": (m["tet_aspect"], False),
-        }
         bad = np.zeros(len(tets), dtype=bool)
-        for name, (values, low_bad) in measures.items():
+        for name, (distance, low_bad) in _TET_GATE_MEASURES.items():
             if name in gate:
-                level = gate[name]
-                if name == "dihedral_max":
-                    level = 180.0 - level
-                elif name == "vol_skew":
-                    level = 1.0 - level
-                bad |= past(values, level, low_bad)
+                bad |= past(distance(m[name]), distance(gate[name]), low_bad)
         miss[tets[bad]] = True
     return miss
 
