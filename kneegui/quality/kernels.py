@@ -260,7 +260,8 @@ class _FaceAccumulator:
         np.maximum(self.skew_sin, np.minimum(best, 1.0), out=self.skew_sin)
 
     def _add_aspect(self, hi: Arr, lo: Arr) -> None:
-        with np.errstate(divide="ignore", invalid="ignore"):
+        # a face edge of ~1e-160 (a damaged deck) overflows the ratio to inf: its aspect is
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             ratio = hi / lo
         ratio[lo <= 0.0] = np.inf
         np.maximum(self.aspect_sq, ratio, out=self.aspect_sq)

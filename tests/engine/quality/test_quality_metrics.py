@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import warnings
 
 import numpy as np
 import pytest
@@ -392,3 +393,14 @@ def test_single_metric_evaluation_is_bit_identical_to_the_full_one(only):
     assert 0 < full.n_inverted < full.n_elements  # the cases include inverted elements
     with pytest.raises(ValueError, match="only= takes one of"):
         evaluator.evaluate(coords, only="jacobian_gauss")
+
+
+def test_an_edge_of_1e_160_gives_an_infinite_aspect_without_a_warning():
+    """A damaged deck's face with an edge of ~1e-160 overflows the edge ratio: its aspect is
+    infinite, measured quietly (the pipeline fuzz test hit it as a RuntimeWarning)."""
+    coords = np.array([[0.0, 0, 0], [1e-160, 0, 0], [1, 1, 0], [0, 1, 0]])
+    blocks = {"quad4": ElementBlock("quad4", np.array([1]), np.array([1]), np.arange(4)[None, :])}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        aspect = compute_quality(coords, blocks)["quad4"].aspect
+    assert np.isinf(aspect[0])
