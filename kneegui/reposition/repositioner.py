@@ -598,6 +598,8 @@ class Repositioner:
             skin_contours=contours,
             contour_margin=margin,
             segment_of=self._segment_of(),
+            beyond=g.soft,
+            initial_quality=initial,
         )
 
     def _segment_of(self) -> NDArray[np.int64]:

@@ -16,6 +16,7 @@ from kneegui.meshopt.quality_optimiser import (
     QualityOptions,
     _build_problem,
     corner_ratio_penalty_numpy,
+    gate_shortfall_nodes,
     optimise_quality,
     quality_aims,
     shortfall_region,
@@ -259,6 +260,56 @@ def test_an_element_past_the_gate_is_weighed_up_until_it_clears_it():
     gate = held / 0.8  # within the default reach (a quarter) of it
     assert collapse(gate) > gate * (1.0 + QualityOptions().gate_margin)
     assert collapse(gate, gate_reach=0.1) == held  # out of reach: nothing weighed up
+
+
+def _cube_grid(n: int = 3) -> tuple[np.ndarray, dict[str, ElementBlock], object]:
+    """An n x n x n block of unit hexes, and its node numbering ``node(i, j, k)``."""
+    ticks = np.arange(n + 1, dtype=float)
+    grid = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def node(i, j, k):
+        return (i * (n + 1) + j) * (n + 1) + k
+
+    hexes = [
+        [node(i + a, j + b, k + c) for c, (a, b) in ((c, ab) for c in (0, 1) for ab in
+                                                     ((0, 0), (1, 0), (1, 1), (0, 1)))]
+        for i in range(n) for j in range(n) for k in range(n)
+    ]  # fmt: skip
+    ids = np.arange(len(hexes)) + 1
+    return grid, {"hex8": ElementBlock("hex8", ids, np.ones_like(ids), np.array(hexes))}, node
+
+
+def test_gate_shortfall_finds_only_what_the_pose_took_past_the_gate():
+    """An element the pose took below the initial model's worst Jacobian (the gate's level) is
+    found, and only among the elements touching the mask; a rigid motion, which carries the
+    initial worst element onto the level itself, finds nothing."""
+    rest, blocks, node = _cube_grid(3)
+    rest[node(1, 1, 1)] += [0.3, 0.25, 0.0]  # the initial model's worst elements
+    q0 = compute_quality(rest, blocks)
+    gate = quality_aims(q0, blocks).gate
+    posed = rest.copy()
+    posed[node(3, 3, 3)] -= [0.4, 0.35, 0.3]
+    every = np.ones(len(rest), dtype=bool)
+    worst_now = compute_quality(posed, blocks)["hex8"].jacobian_corner
+    at_rest = q0["hex8"].jacobian_corner
+    below = np.flatnonzero((worst_now < gate["jacobian"] * 1.01) & (worst_now < at_rest))
+    # the initial worst elements stay on the level and are not among them
+    assert np.sum(at_rest == gate["jacobian"]) >= 1
+    assert not np.isin(np.flatnonzero(at_rest == gate["jacobian"]), below).any()
+    assert len(below) >= 1 and (worst_now.min() < 0.97 * gate["jacobian"])
+    found = gate_shortfall_nodes(posed, blocks, gate, q0, every, 0.01)
+    expected = np.unique(blocks["hex8"].conn[below])
+    np.testing.assert_array_equal(found, expected)
+    assert node(3, 3, 3) in found and node(1, 1, 1) not in found
+    far = np.zeros(len(rest), dtype=bool)
+    far[[node(0, 0, 0), node(0, 0, 1)]] = True  # touches no element the pose degraded
+    assert len(gate_shortfall_nodes(posed, blocks, gate, q0, far, 0.01)) == 0
+    angle = 0.7
+    rotation = np.array(
+        [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    )
+    carried = rest @ rotation.T + [5.0, -3.0, 2.0]
+    assert len(gate_shortfall_nodes(carried, blocks, gate, q0, every, 0.01)) == 0
 
 
 def test_quality_aims_ask_tets_for_their_initial_collapse_up_to_the_warn_level():

@@ -469,3 +469,49 @@ def test_rounds_after_one_that_left_corners_inverted_move_only_the_nodes_around_
 def test_relax_options_reject_negative_focus_rings():
     with pytest.raises(ValueError, match="focus_rings"):
         RelaxOptions(focus_rings=-1)
+
+
+def test_the_quality_stage_mends_an_element_the_pose_took_past_the_gate_beyond_its_region():
+    """The relaxed region is the left half; the pose took an element of the right half below
+    the initial model's worst Jacobian (the gate's level). Given the right half as ``beyond``
+    nodes, a pass after the region's lifts it past that level moving only those nodes, the
+    skin among them sliding in its plane; without them it stays below (the coarse demo posed
+    to 0 deg: a calf hex 6 condyle radii from the axis, 0.327 against 0.330)."""
+    coords, blocks, boundary, node = hex_block(4)
+    rest = coords.copy()
+    rest[node(3, 2, 2)] += [2.5, 2.0, 0.0]  # the initial model's worst elements
+    initial = compute_quality(rest, blocks)
+    aims = quality_aims(initial, blocks)
+    posed = rest.copy()
+    posed[node(3, 1, 3)] += [2.0, 2.0, 1.5]  # below the top face, the skin
+    assert compute_quality(posed, blocks).worst_jacobian() < 0.85 * aims.gate["jacobian"]
+    interior = np.setdiff1d(np.arange(len(rest)), boundary)
+    skin = np.flatnonzero(rest[:, 2] == 40.0)
+    skin_inside = skin[((rest[skin, :2] > 0.0) & (rest[skin, :2] < 40.0)).all(axis=1)]
+    left = interior[rest[interior, 0] < 15.0]
+    right = np.concatenate([interior, skin_inside])
+    right = right[rest[right, 0] > 15.0]
+
+    def relax(beyond):
+        rx = ElasticRelaxation(
+            rest,
+            corner_tetrahedra(blocks, {"hex8": np.ones(len(blocks["hex8"]), bool)}),
+            left,
+            blocks=blocks,
+            aims=aims,
+            sliding=skin,
+            beyond=beyond,
+            initial_quality=initial,
+        )
+        return rx.relax(posed)
+
+    held, _ = relax(None)
+    np.testing.assert_array_equal(held, posed)  # nothing in the left half to do
+    mended, report = relax(right)
+    assert compute_quality(mended, blocks).worst_jacobian() > 1.05 * aims.gate["jacobian"]
+    moved = np.flatnonzero(np.linalg.norm(mended - posed, axis=1) > 0.0)
+    assert np.isin(moved, right).all() and node(3, 1, 3) in moved
+    assert len(moved) <= report.quality.beyond_region_nodes <= len(right)
+    slid = np.abs(mended[skin] - posed[skin])
+    assert slid[:, :2].max() > 0.05  # the skin helped, along its plane
+    assert slid[:, 2].max() < 1e-4  # and stayed in it

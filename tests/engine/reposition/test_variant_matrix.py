@@ -177,6 +177,11 @@ KNOWN_MISSES = {
         for angle, counts in ((60.0, "24 / 19"), (90.0, "62 / 54"), (120.0, "104 / 99"))
     },
     ("welded", 90.0, "quality"): "worst corner Jacobian below zero (inverted elements)",
+    ("welded", 0.0, "quality"): "worst corner Jacobian 0.225 against the initial 0.330: the "
+    "four elements below 0.330 are locked (every node tied to femur or tibia; coarse demo, "
+    "5 December)",
+    ("tet10", 0.0, "quality"): "the corner tets meet every tet measure, but mid-side nodes sit "
+    "0.41 edge lengths off their edges (against 0; coarse 10-node tet demo, 5 December)",
     ("hex-flexed0", 90.0, "export"): "95th percentile of the soft solids' volume change "
     "24.85 % against the 25 % bound with the pinned kernels since the untangling's rounds focus "
     "on the tangles (24.996 % before, 25.3 % with this machine's AVX-512 kernels): within a "
@@ -219,9 +224,11 @@ def test_export_holds_on_variant(cells, name, angle):
         assert cell.p95_pct <= P95_LIMIT_PCT, cell
 
 
-@pytest.mark.parametrize(("name", "angle"), list(_cells("quality", (90.0,))))
-def test_quality_at_90_no_worse_than_initial(cells, name, angle):
-    """The gate's measures, with a margin so that they cannot flip on rounding: the worst
+@pytest.mark.parametrize(("name", "angle"), list(_cells("quality", (0.0, 90.0))))
+def test_quality_at_0_and_90_no_worse_than_initial(cells, name, angle):
+    """At 0 deg (a far calf hex the mapping alone took to 0.327 against 0.330 until the
+    quality stage mended beyond its region, 5 December) and 90 deg, the gate's measures, with
+    a margin so that they cannot flip on rounding: the worst
     corner Jacobian at least :data:`GATE_MARGIN` better than the initial model's worst (where
     the deck has solids other than tetrahedra, whose single corner is 1.0 by definition), and
     each tet measure no worse than the initial worst (its gate; the worst tet of a deck is
