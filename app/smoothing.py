@@ -63,6 +63,9 @@ def status_line(report: Mapping[str, Any], jacobian: bool = True) -> str:
                 figures.append(
                     f"worst Jacobian {quality['worst_before']:.3f} -> {quality['worst_after']:.3f}"
                 )
+            beyond = quality.get("beyond_region_nodes", 0)
+            if beyond:  # the pass that mends what the mapping degraded far from the joint
+                figures.append(f"{beyond} nodes beyond the relaxed region")
             stages += ", quality optimised: " + ", ".join(figures)
         parts.append(
             f"relaxed {relax['free_nodes']} nodes ({relax['inverted_corners_before']} "

@@ -247,3 +247,7 @@ def test_status_line_quotes_the_tet_collapse_and_the_jacobian_where_it_says_some
     assert "quality optimised: worst Jacobian 1.000 -> 1.000," in app.smoothing.status_line(
         report, jacobian=False
     )
+    quality.update(beyond_region_nodes=148)  # the pass beyond the relaxed region ran
+    assert "worst Jacobian 1.000 -> 1.000, 148 nodes beyond the relaxed region," in (
+        app.smoothing.status_line(report, jacobian=False)
+    )
