@@ -340,7 +340,7 @@ def format_quality_table(
 #: could see in a three-decimal table.
 GATE_JACOBIAN_TOLERANCE = 1e-6
 #: The tet measures as the gate's reasons name them.
-_GATE_NAMES = {
+GATE_NAMES = {
     "tet_collapse": "tet collapse",
     "dihedral_min": "min dihedral angle (deg)",
     "dihedral_max": "max dihedral angle (deg)",
@@ -389,6 +389,6 @@ def quality_gate(summary: Mapping) -> list[str]:
         if worst < initial - tolerance if low_bad else worst > initial + tolerance:
             side = "below" if low_bad else "above"
             reasons.append(
-                f"worst {_GATE_NAMES[m]} {worst:.4g} is {side} the initial model's {initial:.4g}"
+                f"worst {GATE_NAMES[m]} {worst:.4g} is {side} the initial model's {initial:.4g}"
             )
     return reasons

@@ -29,6 +29,7 @@ from kneegui.quality import (
     volume_change_pct,
 )
 from kneegui.quality.metrics import METRICS, ElementQuality, QualityResult
+from kneegui.quality.summary import GATE_NAMES
 from kneegui.reposition.bone_overlap import BONE_OVERLAP_TOLERANCE, BoneOverlap
 from kneegui.reposition.preflight import Preflight, preflight_of
 from kneegui.reposition.repositioner import SOFT_ROLES, Repositioner, tissue_in_bones_warnings
@@ -179,6 +180,46 @@ def split_gate_reasons(reasons: list[str], inverted: dict[str, Any]) -> list[str
     return [f"{head}: {', '.join(split)}" if r == head else r for r in reasons]
 
 
+def name_worst_elements(
+    reasons: list[str],
+    summary: Mapping[str, Any],
+    model: Model,
+    quality: QualityResult,
+    preflight: Preflight,
+) -> list[str]:
+    """The gate's reasons with each worst measure's element named, and whether the
+    repositioner may move it (:meth:`Preflight.kind_of`): ``worst Jacobian 0.225 is below the
+    initial model's 0.330 (element 5156, locked between segments)``. A locked element's
+    shape is the kinematics', not the repositioner's doing."""
+    directions = summary.get("thresholds", {}).get("*", {})
+    labels = {"jacobian": "Jacobian", **GATE_NAMES}
+    out = []
+    for reason in reasons:
+        name = next(
+            (m for m, label in labels.items() if reason.startswith(f"worst {label} ")), None
+        )
+        low_bad = name == "jacobian" or directions.get(name, {}).get("direction") == "min"
+        best = None
+        for etype in quality if name is not None else ():
+            q = quality[etype]
+            if not len(q) or not q.has(name):
+                continue
+            values = q.metric(name)
+            if np.isnan(values).all():
+                continue
+            k = int(np.nanargmin(values) if low_bad else np.nanargmax(values))
+            value = float(values[k]) if low_bad else -float(values[k])
+            if best is None or value < best[0]:
+                best = (value, etype, int(q.rows[k]))
+        if best is None:
+            out.append(reason)
+            continue
+        _, etype, row = best
+        element = int(model.blocks[etype].ids[row])
+        out.append(f"{reason} (element {element}, {preflight.kind_of(etype, row)})")
+    return out
+
+
 def locked_inverted_warning(inverted: dict[str, Any], preflight: Preflight) -> list[str]:
     """The warning for locked elements a pose inverts: not the repositioner's failure (no stage
     may move their nodes), named with the flexion range the pre-flight check found valid."""
@@ -273,6 +314,7 @@ def pose_model(
     timings["preflight"] = time.perf_counter() - t
     inverted = preflight.split_inverted(final, final_q)
     reasons = split_gate_reasons(quality_gate(summary), inverted)
+    reasons = name_worst_elements(reasons, summary, final, final_q, preflight)
     overlaps = repositioner.bone_overlap(result.bone_pose)
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)

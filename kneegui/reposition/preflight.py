@@ -202,6 +202,15 @@ class Preflight:
             return f"inverts at {below:.1f} deg (extending)"
         return "valid over the whole range"
 
+    def kind_of(self, etype: str, row: int) -> str:
+        """What can move one element: ``"locked between segments"``, ``"movable"`` (it has a
+        node the repositioner may move) or ``"rigid with one segment"``, as
+        :meth:`split_inverted` counts them."""
+        if (etype, int(row)) in self._locked_keys:
+            return "locked between segments"
+        rows = self.movable_rows.get(etype)
+        return "movable" if rows is not None and rows[int(row)] else "rigid with one segment"
+
     def split_inverted(self, model: Model, quality: QualityResult) -> dict[str, Any]:
         """A pose's inverted elements split into locked, movable (with a node the repositioner
         may move) and other (tied rigidly to one segment, so inverted at rest already).
