@@ -167,7 +167,8 @@ def cells(repositioners):
 
 #: (variant, angle) cells in the default run; every other cell is ``expensive`` (left out of the
 #: default run to keep CI within its budget; ``pytest -m expensive`` runs them).
-DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0)}
+#: (the coarse hex demo at 0 deg: the pass beyond the relaxed region, 5 December)
+DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0), ("hex", 0.0)}
 #: Cells measured to miss a target, with what was measured (kept visible as expected failures
 #: until the engine reaches them; docs/repositioning.md, known limits).
 KNOWN_MISSES = {
