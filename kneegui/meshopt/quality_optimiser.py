@@ -573,6 +573,24 @@ _TET_GATE_MEASURES: dict[str, tuple[Callable[[Any], Any], bool]] = {
 }
 
 
+#: The gate's measure of the other solids, as :data:`_TET_GATE_MEASURES`.
+_SOLID_GATE_MEASURES: dict[str, tuple[Callable[[Any], Any], bool]] = {
+    "jacobian": (lambda v: v, True)
+}
+#: The quality result's field of a gate measure, where its name differs.
+_GATE_FIELDS = {"jacobian": "jacobian_corner"}
+
+
+def _past_level(
+    values: NDArray[np.float64], level: float, low_bad: bool, margin: float
+) -> NDArray[np.bool_]:
+    """Which ``values`` (a distance from a flat tet, or a Jacobian) are past a gate ``level``
+    or within the relative ``margin`` of it, on its bad side."""
+    if low_bad:
+        return values < level * (1.0 + margin)
+    return values > level * (1.0 - margin)
+
+
 def _gate_misses(
     pr: _Problem, x: NDArray[np.float64], gate: Mapping[str, float], margin: float, reach: float
 ) -> NDArray[np.bool_]:
@@ -586,9 +604,9 @@ def _gate_misses(
     def past(values: NDArray, level: float, low_bad: bool) -> NDArray[np.bool_]:
         if low_bad:
             in_reach = values.min(initial=np.inf) >= (1.0 - reach) * level
-            return (values < level * (1.0 + margin)) & in_reach
-        in_reach = values.max(initial=-np.inf) <= level / (1.0 - reach)
-        return (values > level * (1.0 - margin)) & in_reach
+        else:
+            in_reach = values.max(initial=-np.inf) <= level / (1.0 - reach)
+        return _past_level(values, level, low_bad, margin) & in_reach
 
     solids = counts > 1
     if "jacobian" in gate and solids.any():
@@ -647,24 +665,16 @@ def gate_shortfall_nodes(
         q = compute_quality(coords, {etype: block}, rows={etype: rows})[etype]
         q0 = initial[etype]
         at = np.searchsorted(q0.rows, rows)
-        measures = (
-            {name: spec for name, spec in _TET_GATE_MEASURES.items() if name in gate}
-            if etype in TET_TYPES
-            else {"jacobian": (lambda v: v, True)}
-            if "jacobian" in gate
-            else {}
-        )
+        measures = _TET_GATE_MEASURES if etype in TET_TYPES else _SOLID_GATE_MEASURES
         bad = np.zeros(len(rows), dtype=bool)
         for name, (distance, low_bad) in measures.items():
-            field_name = "jacobian_corner" if name == "jacobian" else name
+            field_name = _GATE_FIELDS.get(name, name)
             now, then = getattr(q, field_name), getattr(q0, field_name)
-            if now is None or then is None:
+            if name not in gate or now is None or then is None:
                 continue
-            v, v0, level = distance(now), distance(then[at]), distance(gate[name])
-            if low_bad:
-                bad |= (v < level * (1.0 + margin)) & (v < v0 * (1.0 - worse))
-            else:
-                bad |= (v > level * (1.0 - margin)) & (v > v0 * (1.0 + worse))
+            v, v0 = distance(now), distance(then[at])
+            made_worse = v < v0 * (1.0 - worse) if low_bad else v > v0 * (1.0 + worse)
+            bad |= _past_level(v, distance(gate[name]), low_bad, margin) & made_worse
         found[conn[rows[bad]]] = True
     return np.flatnonzero(found)
 
