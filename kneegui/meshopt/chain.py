@@ -7,8 +7,9 @@ A posed mesh is made solver-ready by three stages, each with its own options:
    when stage 2 follows it stops as soon as nothing is inverted;
 2. **quality** (:class:`~kneegui.meshopt.quality_optimiser.QualityOptions`, ``None`` skips it):
    every node around an element that misses its aims moves, all together
-   (:func:`~kneegui.meshopt.quality_optimiser.optimise_quality`); it runs only on an untangled
-   region;
+   (:func:`~kneegui.meshopt.quality_optimiser.optimise_quality`); it runs on an untangled
+   region, or (``QualityOptions.hold_inverted``) on one the untangling left with elements
+   inverted, around what is past its constraints, their nodes held where they are;
 3. **smooth** (:class:`~kneegui.meshopt.smoother.SmoothOptions`, ``None`` skips it): the
    quality-guarded smoother on what is still degraded (:func:`~kneegui.meshopt.smooth_mesh`).
 
@@ -177,7 +178,10 @@ def improve_region(
         x, relaxation, untangled = region.untangle(
             coords, options.relax, optimise_next, span("untangle"), should_cancel
         )
-        if optimise_next and untangled:
+        # a region left with corners inverted still gets the stage, around them (their nodes
+        # held): its settling is what brings the tissue out of the bones
+        stuck = relaxation.inverted_corners_after > 0 and options.quality.hold_inverted
+        if optimise_next and (untangled or stuck):
             x, relaxation.quality = region.optimise(x, options.quality, span("quality"), cancel)
         relaxation.seconds = time.perf_counter() - t0
     relaxed = x

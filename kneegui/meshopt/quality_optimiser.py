@@ -418,6 +418,15 @@ class QualityOptions:
         5.4 s instead of 13.5 s with the same worst Jacobian and 95th-percentile volume change.
         Tetrahedra keep their shape aims in the count: without them the coarse tet demo's
         worst collapse at 90 deg fell from 0.106 to 0.102.
+    hold_inverted : bool
+        Run on a region the untangling left with elements still inverted too: every node of
+        those elements held where the untangling left it, and only around the nodes past
+        their constraints (the caller finds both; see
+        :meth:`kneegui.reposition.relax.ElasticRelaxation.optimise`). False: the stage waits
+        for an untangled region. A region that does not untangle never had its bone contact
+        stiffened, and the settling of this stage is what brings the tissue out of the bones:
+        the 177k demo at 90 deg (three elements never freed) ended with 316 soft-tissue nodes
+        up to 4.7 mm inside a bone without it and none with it.
     """
 
     margin: float = 0.08
@@ -440,6 +449,7 @@ class QualityOptions:
     settling_floor: float = 0.5
     active_rings: int = 2
     active_shrink: float = 0.9
+    hold_inverted: bool = True
 
     def scaled(self, length: float) -> QualityOptions:
         """These options for a model drawn ``length`` times larger (or in other units): the
@@ -481,6 +491,9 @@ class QualityOptimisationReport:
         past the gate's levels (:func:`gate_shortfall_nodes`); its time and iterations are
         added to ``seconds``, ``iterations`` and ``evaluations``, the other figures are the
         region's.
+    held_nodes : int
+        Nodes of the region held where the untangling left them because an element of theirs
+        was still inverted (``QualityOptions.hold_inverted``).
     """
 
     free_nodes: int = 0
@@ -501,6 +514,7 @@ class QualityOptimisationReport:
     region_seconds: float = 0.0  # the caller's search for the region (not in ``seconds``)
     active_nodes: list[int] = field(default_factory=list)
     beyond_region_nodes: int = 0
+    held_nodes: int = 0
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""

@@ -63,7 +63,7 @@ from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
-from kneegui.topology import CORNER_NODES, SOLID_FACES, sorted_unique
+from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, SOLID_FACES, sorted_unique
 
 __all__ = [
     "ElasticRelaxation",
@@ -892,6 +892,39 @@ class ElasticRelaxation:
         seed[seeds] = True
         return free[self._reach(seed, rings)[free]]
 
+    def _past_constraints(
+        self,
+        x: NDArray[np.float64],
+        transforms: Mapping[str, RigidTransform] | None,
+        crossing: NDArray[np.int64] | None,
+    ) -> NDArray[np.int64]:
+        """The relaxable nodes deeper in a bone than the untangling's tolerance, and the skin
+        nodes out of contour order (``crossing``)."""
+        seeds = np.zeros(0, dtype=np.int64) if crossing is None else crossing
+        if self.bones and transforms is not None and len(self.contact_nodes):
+            _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
+            deep = self.contact_nodes[depth < -self.options.penetration_tolerance]
+            seeds = np.union1d(seeds, deep)
+        return seeds
+
+    def inverted_element_nodes(self, x: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Every node of the elements around the relaxable nodes that have a corner with
+        ``det J <= 0`` at ``x``: solids, and skin quads against their own normal (the corners
+        the quality optimiser checks before it starts)."""
+        held = []
+        for etype, block in (self.blocks or {}).items():
+            if etype not in CORNER_TRIPLES:
+                continue
+            conn = block.conn[self.is_free[block.conn].any(axis=1)]
+            p = x[conn]
+            normal = None
+            if etype == "quad4":
+                normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+            bad = (corner_determinants(p, etype, normal) <= 0).any(axis=1)
+            if bad.any():
+                held.append(conn[bad].ravel())
+        return sorted_unique(np.concatenate(held)) if held else np.zeros(0, dtype=np.int64)
+
     @staticmethod
     def _stuck_nodes(sub: FoldoverEnergy, det: NDArray[np.float64]) -> NDArray[np.int64]:
         """Local indices of the free nodes of the inverted corners and quads.
@@ -947,9 +980,19 @@ class ElasticRelaxation:
         order = self.contour_order
         t = time.perf_counter()
         crossing = None if order is None else order.crossing(x)
-        free = shortfall_region(
-            x, self.blocks, self.aims, self.free, self.options.rings, seeds=crossing
-        )
+        held = self.inverted_element_nodes(x) if options.hold_inverted else None
+        if held is not None and len(held):
+            # left tangled: only around what is past its constraints (in a bone, a contour
+            # out of order), the rest's aims are the smoother's as before
+            seeds = self._past_constraints(x, transforms, crossing)
+            free = shortfall_region(
+                x, self.blocks, self.aims, self.free, self.options.rings, seeds, misses=False
+            )
+            free = np.setdiff1d(free, held, assume_unique=True)
+        else:
+            free = shortfall_region(
+                x, self.blocks, self.aims, self.free, self.options.rings, seeds=crossing
+            )
         region_seconds = time.perf_counter() - t
         out, report = x, None
         if len(free):
@@ -979,13 +1022,19 @@ class ElasticRelaxation:
                     cancel=cancel,
                 )
             except ValueError:  # an element stayed inverted or flat: the input has one (#22)
+                if held is not None and len(held):
+                    return x, None  # the untangling's inverted elements: the gate counts them
                 raise GeometryError(
                     "the relaxation cannot untangle the soft tissue it moves: an element there "
                     "is inverted or flat (coincident nodes or a collapsed element in the deck? "
                     "'kneegui quality' lists them)"
                 ) from None
             out = self.midside_out_of_bones(self.carry_midside(x, out), transforms)
-            report = replace(report, region_seconds=region_seconds)
+            report = replace(
+                report,
+                region_seconds=region_seconds,
+                held_nodes=0 if held is None else int(np.count_nonzero(self.is_free[held])),
+            )
         return self._mend_beyond(out, transforms, options, report, cancel)
 
     def _mend_beyond(

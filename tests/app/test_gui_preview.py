@@ -251,3 +251,7 @@ def test_status_line_quotes_the_tet_collapse_and_the_jacobian_where_it_says_some
     assert "worst Jacobian 1.000 -> 1.000, 148 nodes beyond the relaxed region," in (
         app.smoothing.status_line(report, jacobian=False)
     )
+    quality.update(held_nodes=11)  # the stage ran around elements the untangling left inverted
+    assert "148 nodes beyond the relaxed region, 11 nodes of inverted elements held," in (
+        app.smoothing.status_line(report, jacobian=False)
+    )

@@ -237,3 +237,8 @@ def test_export_table_accounts_for_the_time_outside_the_timed_stages():
     assert rest == [f"| — {export_bench.UNSTAGED} | 2.50 s | 2.50 s |"]
     # a variant's column says what it is; a run that recorded none is left unnamed
     assert "| | 10 solids | 20 solids (tet4, 7 locked) |" in lines
+    # the tissue in the bones is a row of its own; a run saved before it was recorded says so
+    bones = {**run, "tissue_in_bones": {"nodes": 316, "deepest": 4.654, "tolerance": 0.5}}
+    lines = export_bench.markdown({"runs": [bones, run]})
+    row = [line for line in lines if "soft-tissue nodes in a bone" in line]
+    assert len(row) == 1 and row[0].endswith("| 316 (4.65 mm) | not recorded |")

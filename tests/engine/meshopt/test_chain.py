@@ -32,7 +32,11 @@ class Region:
         assert isinstance(options, RelaxOptions)
         self.calls.append(f"untangle(stop={stop_when_untangled})")
         progress(1.0, "untangled")
-        report = RelaxReport(free_nodes=3, min_det_after=0.5 if self.untangled else -1.0)
+        report = RelaxReport(
+            free_nodes=3,
+            min_det_after=0.5 if self.untangled else -1.0,
+            inverted_corners_after=0 if self.untangled else 2,
+        )
         return coords + 1.0, report, self.untangled
 
     def optimise(self, coords, options, progress, cancel):
@@ -81,7 +85,27 @@ def test_a_stage_set_to_none_does_not_run(options, calls, value):
     assert (report.smoothing is None) == (options.smooth is None)
 
 
-def test_the_quality_stage_waits_for_an_untangled_region():
+def test_the_quality_stage_runs_around_what_the_untangling_left_inverted():
+    """By default the quality stage follows a region left with corners inverted (the region
+    holds their nodes); with ``hold_inverted=False`` it waits for an untangled region."""
     region = Region(untangled=False)
     _, report = improve_region(np.zeros((2, 3)), region, ImprovementOptions(smooth=None))
+    assert region.calls == ["untangle(stop=True)", "optimise"]
+    assert report.relaxation.quality is not None
+    region = Region(untangled=False)
+    waiting = ImprovementOptions(smooth=None, quality=QualityOptions(hold_inverted=False))
+    _, report = improve_region(np.zeros((2, 3)), region, waiting)
     assert region.calls == ["untangle(stop=True)"] and report.relaxation.quality is None
+
+
+def test_a_region_with_nothing_to_untangle_is_not_optimised_for_being_stuck():
+    """No region at all (untangle says no, nothing inverted): no quality stage."""
+
+    class Empty(Region):
+        def untangle(self, coords, options, stop_when_untangled, progress, cancel):
+            self.calls.append("untangle")
+            return coords, RelaxReport(), False
+
+    region = Empty()
+    improve_region(np.zeros((2, 3)), region, ImprovementOptions(smooth=None))
+    assert region.calls == ["untangle"]
