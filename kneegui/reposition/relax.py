@@ -981,6 +981,8 @@ class ElasticRelaxation:
         t = time.perf_counter()
         crossing = None if order is None else order.crossing(x)
         held = self.inverted_element_nodes(x) if options.hold_inverted else None
+        if held is not None and len(held) and len(self.inverted_element_nodes(self.rest)):
+            held = None  # flat or inverted in the deck already: the error below names that
         if held is not None and len(held):
             # left tangled: only around what is past its constraints (in a bone, a contour
             # out of order), the rest's aims are the smoother's as before
