@@ -363,6 +363,7 @@ class ElasticRelaxation:
         self.free = free[in_tet[free]]
         self.is_free = np.zeros(n, dtype=bool)
         self.is_free[self.free] = True
+        self._rest_flat: bool | None = None  # :meth:`_flat_at_rest`
         self.n_nodes = n
         # node adjacency along the corner edges (real nodes), for growing the relaxed region
         a = np.repeat(self.tets[:, 0], 3)
@@ -658,11 +659,7 @@ class ElasticRelaxation:
         if len(self.free) == 0 or len(self.tets) == 0:
             return x, report, False
         use_contact = bool(self.bones) and transforms is not None
-        penetrating = None
-        if use_contact:
-            _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
-            report.deepest_penetration = float(max(0.0, -depth.min()))
-            penetrating = self.contact_nodes[depth < -self.options.penetration_tolerance]
+        penetrating, report.deepest_penetration = self._penetrating(x, transforms)
         t = time.perf_counter()
         if self.contour_order is not None:
             crossing = self.contour_order.crossing(x)
@@ -892,20 +889,23 @@ class ElasticRelaxation:
         seed[seeds] = True
         return free[self._reach(seed, rings)[free]]
 
-    def _past_constraints(
-        self,
-        x: NDArray[np.float64],
-        transforms: Mapping[str, RigidTransform] | None,
-        crossing: NDArray[np.int64] | None,
-    ) -> NDArray[np.int64]:
-        """The relaxable nodes deeper in a bone than the untangling's tolerance, and the skin
-        nodes out of contour order (``crossing``)."""
-        seeds = np.zeros(0, dtype=np.int64) if crossing is None else crossing
-        if self.bones and transforms is not None and len(self.contact_nodes):
-            _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
-            deep = self.contact_nodes[depth < -self.options.penetration_tolerance]
-            seeds = np.union1d(seeds, deep)
-        return seeds
+    def _penetrating(
+        self, x: NDArray[np.float64], transforms: Mapping[str, RigidTransform] | None
+    ) -> tuple[NDArray[np.int64] | None, float]:
+        """The contact nodes deeper in a bone than ``penetration_tolerance`` at ``x`` and the
+        deepest penetration (None and 0 without bones or transforms)."""
+        if not self.bones or transforms is None or len(self.contact_nodes) == 0:
+            return None, 0.0
+        _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
+        deep = self.contact_nodes[depth < -self.options.penetration_tolerance]
+        return deep, float(max(0.0, -depth.min()))
+
+    def _flat_at_rest(self) -> bool:
+        """Whether an element around the relaxable nodes is flat or inverted in the deck
+        (computed once)."""
+        if self._rest_flat is None:
+            self._rest_flat = bool(len(self.inverted_element_nodes(self.rest)))
+        return self._rest_flat
 
     def inverted_element_nodes(self, x: NDArray[np.float64]) -> NDArray[np.int64]:
         """Every node of the elements around the relaxable nodes that have a corner with
@@ -981,12 +981,14 @@ class ElasticRelaxation:
         t = time.perf_counter()
         crossing = None if order is None else order.crossing(x)
         held = self.inverted_element_nodes(x) if options.hold_inverted else None
-        if held is not None and len(held) and len(self.inverted_element_nodes(self.rest)):
+        if held is not None and len(held) and self._flat_at_rest():
             held = None  # flat or inverted in the deck already: the error below names that
         if held is not None and len(held):
             # left tangled: only around what is past its constraints (in a bone, a contour
             # out of order), the rest's aims are the smoother's as before
-            seeds = self._past_constraints(x, transforms, crossing)
+            deep, _ = self._penetrating(x, transforms)
+            parts = [a for a in (deep, crossing) if a is not None]
+            seeds = np.concatenate(parts) if parts else None
             free = shortfall_region(
                 x, self.blocks, self.aims, self.free, self.options.rings, seeds, misses=False
             )
