@@ -205,16 +205,22 @@ print(hashlib.sha1(x.tobytes()).hexdigest())
 """
 
 
-def test_lbfgs_result_does_not_depend_on_the_blas_thread_count():
+def test_lbfgs_result_does_not_depend_on_the_thread_count():
     # BLAS splits long dot products over threads and sums the parts in another order; the
-    # relaxation then took other paths on machines with other core counts
+    # relaxation then took other paths on machines with other core counts. The L-BFGS vector
+    # sums run on numba's threads in fixed chunks: one thread or three, the same bits.
     import os
     import subprocess
     import sys
 
     digests = set()
-    for threads in ("1", "2"):
-        env = dict(os.environ, OPENBLAS_NUM_THREADS=threads, OMP_NUM_THREADS=threads)
+    for threads in ("1", "2", "3"):
+        env = dict(
+            os.environ,
+            OPENBLAS_NUM_THREADS=threads,
+            OMP_NUM_THREADS=threads,
+            NUMBA_NUM_THREADS=threads,
+        )
         run = subprocess.run(
             [sys.executable, "-c", _LBFGS_RUN], env=env, capture_output=True, text=True, check=True
         )
@@ -371,14 +377,14 @@ def test_a_restart_lets_stuck_skin_nodes_off_their_tangent_planes():
     np.testing.assert_array_equal(relaxed[pushed], moved[pushed])
 
 
-def _block_with_a_node_held_outside():
-    """A 4 x 4 x 4 hex block whose centre node is held (not free) 30 beyond its side: the
-    cells around it cannot all be untangled, whatever the free nodes do."""
+def _block_with_a_node_held_outside(offset=(30.0, 0.0, 0.0)):
+    """A 4 x 4 x 4 hex block whose centre node is held (not free) ``offset`` away, beyond its
+    side: the cells around it cannot all be untangled, whatever the free nodes do."""
     coords, blocks, boundary, node = hex_block(4)
     centre = node(2, 2, 2)
     free = np.setdiff1d(np.arange(len(coords)), np.union1d(boundary, [centre]))
     tangled = coords.copy()
-    tangled[centre] += [30.0, 0.0, 0.0]
+    tangled[centre] += offset
     return coords, blocks, free, tangled
 
 
@@ -387,14 +393,16 @@ def test_corners_that_cannot_be_freed_end_with_the_round_that_left_the_fewest():
     the attempt after it can end worse than an earlier round (the welded demo at 120 deg: 197
     inverted corners in the first attempt, 438 at the end of the last). The relaxation hands on
     the round that left the fewest, and its coordinates."""
-    coords, blocks, free, tangled = _block_with_a_node_held_outside()
+    coords, blocks, free, tangled = _block_with_a_node_held_outside((0.0, 30.0, 0.0))
     rx = relaxation(coords, blocks, free, stall_rounds=100)  # every round of every attempt
     relaxed, report = rx.relax(tangled)
-    counts = [h["inverted"] for h in report.history]
+    history = report.history
     assert report.rounds == 60 and report.restarts == 2
-    # the last round is not the best here (4 inverted corners against 3 with the pinned
-    # kernels); the kept round is the best whichever round that is
-    assert report.inverted_corners_after == min(counts) <= counts[-1]
+    # the kept round is the best (fewest inverted, then the largest smallest det) whichever
+    # round that is; here the last attempt ends worse (4 inverted corners against 3), so the
+    # best of an earlier attempt is handed on
+    best = min(range(len(history)), key=lambda i: (history[i]["inverted"], -history[i]["min_det"]))
+    assert report.inverted_corners_after == history[best]["inverted"] < history[-1]["inverted"]
     assert report.kept_attempt in (0, 1)
     sub = rx.energy(rx.free)
     _, _, det = sub.energy(relaxed[sub.nodes], 1e-3)
@@ -468,7 +476,7 @@ def test_a_restart_moves_only_the_nodes_around_the_stuck_ones():
     ``restart_rings`` mesh edges of them: the rest of the region keeps what the first pass
     reached, to the bit (the 177k demo at 90 deg: its two restarts over 52,706 free nodes took
     most of the untangling's time for a handful of corners)."""
-    coords, blocks, free, tangled = _block_with_a_node_held_outside()
+    coords, blocks, free, tangled = _block_with_a_node_held_outside((0.0, 0.0, 30.0))
     first_pass = relaxation(coords, blocks, free, restarts=0)
     x0, report0 = first_pass.relax(tangled)
     sub = first_pass.energy(first_pass.free)
@@ -476,7 +484,8 @@ def test_a_restart_moves_only_the_nodes_around_the_stuck_ones():
     stuck = sub.nodes[first_pass._stuck_nodes(sub, det)]
     assert len(stuck) and report0.inverted_corners_after > 0
     x1, report1 = relaxation(coords, blocks, free, restarts=1, restart_rings=1).relax(tangled)
-    assert report1.restarts == 1 and report1.kept_attempt == -1  # the restart's round is kept
+    # a round of the restart is kept (its last: -1, or its best: 1), not the first pass's
+    assert report1.restarts == 1 and report1.kept_attempt in (-1, 1)
     assert report1.inverted_corners_after < report0.inverted_corners_after
     around = first_pass._within_rings(stuck, 1, free)
     beyond = np.setdiff1d(np.arange(len(coords)), around)
