@@ -993,6 +993,10 @@ class ElasticRelaxation:
                 x, self.blocks, self.aims, self.free, self.options.rings, seeds, misses=False
             )
             free = np.setdiff1d(free, held, assume_unique=True)
+            # the settling's rounds only (QualityOptions.held_rounds)
+            options = replace(
+                options, rounds=min(options.rounds, options.held_rounds), gate_rounds=0
+            )
         else:
             free = shortfall_region(
                 x, self.blocks, self.aims, self.free, self.options.rings, seeds=crossing

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -458,6 +460,15 @@ def test_the_quality_stage_brings_tissue_out_of_a_bone_around_elements_left_inve
     moved = np.flatnonzero(np.any(out != pose, axis=1))
     assert sunk in moved and len(moved) < 0.5 * len(free)
     assert np.abs(coords[moved] - coords[sunk]).max() <= 2 * 10.0 + 1e-9  # two cells around it
+    # there, at most ``held_rounds`` rounds and no gate rounds (plus, with no settling rounds,
+    # the one round over the whole stage when a node is still past its plane): not the 15 and
+    # 4 of the export's options
+    capped = QualityOptions(rounds=15, gate_rounds=4, held_rounds=1, settling_rounds=0)
+    _, capped_report = rx.optimise(pose, transforms, capped, _ignore, None)
+    assert capped_report.rounds <= 1 + 1
+    uncapped = replace(capped, held_rounds=15)
+    _, uncapped_report = rx.optimise(pose, transforms, uncapped, _ignore, None)
+    assert uncapped_report.rounds > capped_report.rounds
 
 
 def _ignore(fraction, message):
