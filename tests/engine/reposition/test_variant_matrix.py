@@ -167,8 +167,10 @@ def cells(repositioners):
 
 #: (variant, angle) cells in the default run; every other cell is ``expensive`` (left out of the
 #: default run to keep CI within its budget; ``pytest -m expensive`` runs them).
-#: (the coarse hex demo at 0 deg: the pass beyond the relaxed region, 5 December)
-DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0), ("hex", 0.0)}
+#: (the coarse hex demo at 0 deg: the pass beyond the relaxed region, 5 December; the mixed
+#: demo at 90 deg: its settling pushed a tet's aspect past the initial worst, 13.54 against
+#: 13.46, until gate rounds followed the settling, 5 December)
+DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0), ("hex", 0.0), ("mixed", 90.0)}
 #: Cells measured to miss a target, with what was measured (kept visible as expected failures
 #: until the engine reaches them; docs/repositioning.md, known limits).
 KNOWN_MISSES = {
@@ -184,9 +186,10 @@ KNOWN_MISSES = {
     ("tet10", 0.0, "quality"): "the corner tets meet every tet measure, but mid-side nodes sit "
     "0.41 edge lengths off their edges (against 0; coarse 10-node tet demo, 5 December)",
     ("hex-flexed0", 90.0, "export"): "95th percentile of the soft solids' volume change "
-    "24.85 % against the 25 % bound with the pinned kernels since the untangling's rounds focus "
-    "on the tangles (24.996 % before, 25.3 % with this machine's AVX-512 kernels): within a "
-    "path of the bound, so not asserted (issue 23, items 4 and 6)",
+    "25.3 % against the 25 % bound with the pinned kernels since L-BFGS sums in fixed chunks "
+    "(24.85 % before, 24.996 % before the untangling's rounds focused on the tangles, 25.3 % "
+    "with AVX-512 kernels): within a path of the bound, so not asserted (issue 23, items 4 "
+    "and 6)",
     ("tet10", 90.0, "quality"): "the corner tets meet every tet measure, but mid-side nodes put "
     "back on a bone's surface sit 0.43 edge lengths off their edges (normal and tangent "
     "offsets, against 0; coarse 10-node tet demo, 5 December, pinned kernels)",
