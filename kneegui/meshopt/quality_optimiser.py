@@ -427,13 +427,8 @@ class QualityOptions:
         stiffened, and the settling of this stage is what brings the tissue out of the bones:
         the 177k demo at 90 deg (three elements never freed) ended with 316 soft-tissue nodes
         up to 4.7 mm inside a bone without it and none with it.
-    held_rounds : int
-        On such a region, at most this many rounds before the settling, and no rounds weighing
-        up the elements past the gate's levels: the held elements fail the gate whatever the
-        others do, and the other aims are the smoother's there. The 177k demo at 90 deg: 15
-        rounds and 4 gate rounds over 10,359 nodes took 13.4 s, 6 rounds and none 7.2 s, both
-        leaving no soft-tissue node in a bone (1 round left 300, up to 4.9 mm: the rounds at
-        the base stiffness do most of bringing the tissue out).
+        On such a region the stage runs no gate rounds (the held elements fail the gate
+        whatever the others do).
     """
 
     margin: float = 0.08
@@ -457,7 +452,6 @@ class QualityOptions:
     active_rings: int = 2
     active_shrink: float = 0.9
     hold_inverted: bool = True
-    held_rounds: int = 6
 
     def scaled(self, length: float) -> QualityOptions:
         """These options for a model drawn ``length`` times larger (or in other units): the
