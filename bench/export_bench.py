@@ -319,6 +319,16 @@ def write_docs(results: dict[str, Any], root: Path = ROOT) -> None:
     plot(results, root / "docs" / "images" / "export-scaling.png")
 
 
+def _same_deck(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether two runs measured the same deck: the same folder, or the same variant with
+    the same node and element counts (a deck regenerated in another folder replaces its
+    earlier run instead of adding a second column)."""
+    if a.get("folder") == b.get("folder"):
+        return True
+    keys = ("variant", "nodes", "elements")
+    return all(k in a and k in b for k in keys) and all(a[k] == b[k] for k in keys)
+
+
 def main(argv: list[str] | None = None) -> int:
     import os
 
@@ -339,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     results["load"] = " / ".join(f"{v:.1f}" for v in os.getloadavg())
     for folder in args.folders:
         run = measure_repeated(folder, args.angle, args.repeats)
-        results["runs"] = [r for r in results["runs"] if r.get("folder") != str(folder)] + [run]
+        results["runs"] = [r for r in results["runs"] if not _same_deck(r, run)] + [run]
         print(json.dumps(run), flush=True)
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         RESULTS.write_text(json.dumps(results, indent=2) + "\n")

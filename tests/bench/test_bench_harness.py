@@ -212,6 +212,20 @@ def test_export_bench_keeps_the_median_run_of_its_repeats(monkeypatch):
     assert run["repeats"] == 3 and run["export_runs_s"] == [7.0, 8.0, 9.0]
 
 
+def test_export_bench_merge_replaces_the_same_deck_measured_in_another_folder():
+    """A deck regenerated in another folder (a new machine's scratch space) replaced nothing
+    and the table grew a second column for every size."""
+    import bench.export_bench as export_bench
+
+    deck = {"variant": "hex8", "nodes": 20, "elements": 30}
+    old = {**deck, "folder": "/old/d20000"}
+    assert export_bench._same_deck(old, {**deck, "folder": "/new/d20000"})
+    assert export_bench._same_deck(old, {"folder": "/old/d20000"})  # same folder, failed run
+    assert not export_bench._same_deck(old, {**deck, "elements": 31, "folder": "/new/x"})
+    assert not export_bench._same_deck(old, {**deck, "variant": "tet4", "folder": "/new/x"})
+    assert not export_bench._same_deck(old, {"folder": "/new/failed"})
+
+
 def test_export_table_accounts_for_the_time_outside_the_timed_stages():
     """The 1M demo's export took 167.7 s of which its timed stages covered 133.3 s: the table
     shows the remainder as its own row, so that the split adds up to the export."""
