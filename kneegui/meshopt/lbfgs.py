@@ -137,8 +137,8 @@ def _two_loop(g, s_mem, y_mem, rho, order):  # pragma: no cover - compiled
         a = -alpha[k]
         previous = i
     newest = order[count - 1]
-    gamma = _update(y_mem[newest], 0.0, y_mem[newest], 1.0, s_mem[newest], True) / _update(
-        y_mem[newest], 0.0, y_mem[newest], 1.0, y_mem[newest], True
+    gamma = _dot_compiled(y_mem[newest], s_mem[newest]) / _dot_compiled(
+        y_mem[newest], y_mem[newest]
     )
     # q = (q - alpha[0] * y[0]) * gamma, then the second loop
     b = 0.0
