@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from kneegui.errors import Cancelled, GeometryError
 from kneegui.meshopt.batched import build_problems, nelder_mead
 from kneegui.meshopt.nodes import boundary_node_normals, unique_pairs
+from kneegui.meshopt.smoother_kernel import element_measures
 from kneegui.model import ElementBlock, Model
 from kneegui.quality.kernels import (
     ratio_of_determinants,
@@ -220,7 +221,8 @@ def edge_ratio(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
     """
     e = _EDGE_INDEX[etype]
     d = points[:, e[:, 1]] - points[:, e[:, 0]]
-    sq = np.einsum("mek,mek->me", d, d)
+    # summed x, y, z in that order, as the compiled kernel does (einsum adds x + z first)
+    sq = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
     lo = sq.min(axis=1)
     out = np.full(len(sq), np.inf)
     np.divide(sq.max(axis=1), lo, out=out, where=lo > 0)
@@ -425,11 +427,8 @@ def _evaluate(
     for ti, etype in enumerate(nb.types):
         sel = np.flatnonzero(types == ti)
         if len(sel):
-            rows = nb.handle_row[handles[sel]]
-            points = coords[nb.conn[ti][rows]]
-            jac[sel], scaled[sel] = corner_quality(points, etype)
-            aspect[sel] = edge_ratio(points, etype)
-            warp[sel] = warp_cosine(points, etype)
+            measures = element_measures(coords, nb.conn[ti], nb.handle_row[handles[sel]], etype)
+            jac[sel], scaled[sel], aspect[sel], warp[sel] = measures
     return jac, scaled, aspect, warp
 
 
