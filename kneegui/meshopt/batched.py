@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.meshopt.batched_kernel import compiled_objective
 from kneegui.topology import ELEMENT_EDGES
 
 _W = 8  # corner determinants per element, padded (hex has 8)
@@ -51,6 +52,27 @@ class LocalProblems:
         self.grad_flat = np.ascontiguousarray(self.grad.reshape(n, e * w, 3))
         self.ends_flat = np.ascontiguousarray(self.ends.reshape(n, e * _K, 3))
         self.ends_sq = np.einsum("nekc,nekc->nek", self.ends, self.ends)
+        # what the compiled objective reads, contiguous and of one dtype each
+        self.kernel_arrays = tuple(
+            np.ascontiguousarray(a, dtype=bool if a.dtype == bool else np.float64)
+            for a in (
+                self.x0,
+                self.projector,
+                self.d0,
+                self.grad,
+                self.size,
+                self.element,
+                self.ends,
+                self.ends_sq,
+                self.edge,
+                self.other_lo,
+                self.other_hi,
+                self.count,
+                self.old_worst,
+                self.old_inverted,
+                self.aspect_cap,
+            )
+        )
 
 
 def _cross(a: NDArray, b: NDArray) -> NDArray:
@@ -163,7 +185,15 @@ def build_problems(
 
 
 def objective(pr: LocalProblems, u: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The negated objective of every node at ``P`` trial moves ``u`` (n, P, 3) -> (n, P)."""
+    """The negated objective of every node at ``P`` trial moves ``u`` (n, P, 3) -> (n, P).
+
+    Compiled (:mod:`kneegui.meshopt.batched_kernel`); :func:`objective_numpy` is its reference.
+    """
+    return compiled_objective(pr.kernel_arrays, u)
+
+
+def objective_numpy(pr: LocalProblems, u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`objective` in NumPy: the reference the compiled objective is tested against."""
     n, e, w = pr.d0.shape
     p_count = u.shape[1]
     delta = u @ pr.projector.transpose(0, 2, 1)  # (n, P, 3)

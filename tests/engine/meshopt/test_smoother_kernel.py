@@ -57,3 +57,56 @@ def test_element_measures_are_the_numpy_reference_bit_for_bit(etype, count):
     assert np.isinf(got[2]).any()  # and the zero-length edge's
     if etype != "tet4":
         assert (got[3] < 1).any()  # warped quad faces
+
+
+def _local_problems(block_model, nodes_wanted: int, seed: int):
+    """Local problems of interior nodes of a perturbed block, some sliding in a plane."""
+    from kneegui.meshopt.batched import build_problems
+    from kneegui.meshopt.smoother import CORNER_TRIPLES
+
+    model = block_model(9, 9, 9, skin=False)
+    rng = np.random.default_rng(seed)
+    coords = model.coords + rng.uniform(-0.15, 0.15, model.coords.shape)
+    block = model.blocks["hex8"]
+    interior = np.flatnonzero(np.all((model.coords > 0.5) & (model.coords < 8.5), axis=1))
+    nodes = rng.choice(interior, nodes_wanted, replace=False)
+    owner, slot, conns = [], [], []
+    counts = np.zeros(len(nodes), dtype=np.int64)
+    for i, node in enumerate(nodes):
+        rows = np.flatnonzero(np.any(block.conn == node, axis=1))
+        owner += [i] * len(rows)
+        slot += list(range(len(rows)))
+        conns.append(block.conn[rows])
+        counts[i] = len(rows)
+    normal = rng.normal(size=(len(nodes), 3))
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    projector = np.repeat(np.eye(3)[None], len(nodes), axis=0)
+    sliding = rng.random(len(nodes)) < 0.3
+    projector[sliding] -= normal[sliding, :, None] * normal[sliding, None, :]
+    return build_problems(
+        nodes, coords,
+        [("hex8", np.array(owner), np.array(slot), np.concatenate(conns))],
+        CORNER_TRIPLES, projector,
+        rng.uniform(-1.5, 0.6, len(nodes)), rng.integers(0, 2, len(nodes)).astype(float),
+        rng.uniform(1.5, 4.0, len(nodes)), counts,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("nodes", [20, 400])
+def test_batched_objective_compiled_is_the_numpy_objective(block_model, nodes):
+    from kneegui.meshopt.batched import objective, objective_numpy
+
+    problems = _local_problems(block_model, nodes, seed=nodes)
+    moves = np.random.default_rng(1).normal(0.0, 0.35, (nodes, 4, 3))  # some invert elements
+    got = objective(problems, moves)
+    expected = objective_numpy(problems, moves)
+    assert got.shape == (nodes, 4)
+    # squared edge lengths |end|^2 - 2 end.x + |x|^2 cancel about 8 digits here (coordinates
+    # near 9, edges near 1), and NumPy's matmul sums in its own order
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+    # both branches of an element's score were reached: valid at the start, inverted by moves
+    real = problems.element
+    assert not ((problems.d0.min(axis=2) <= 0) & real).any()
+    delta = moves @ problems.projector.transpose(0, 2, 1)
+    dets = problems.d0[..., None] + np.einsum("newk,npk->newp", problems.grad, delta)
+    assert ((dets.min(axis=2) <= 0) & real[..., None]).any()
