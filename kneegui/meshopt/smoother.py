@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from kneegui.errors import Cancelled, GeometryError
 from kneegui.meshopt.batched import build_problems, nelder_mead
 from kneegui.meshopt.nodes import boundary_node_normals, unique_pairs
-from kneegui.meshopt.smoother_kernel import element_measures
+from kneegui.meshopt.smoother_kernel import element_measures, greedy_colours
 from kneegui.model import ElementBlock, Model
 from kneegui.quality.kernels import (
     ratio_of_determinants,
@@ -457,26 +457,9 @@ def _colour(
         pairs = np.zeros((0, 2), dtype=np.int64)
     ptr = np.searchsorted(pairs[:, 0], np.arange(n_movable + 1))
     nbrs = pairs[:, 1]
-    # Jones-Plassmann: rounds of locally highest-priority nodes (an independent set), each
-    # taking the smallest colour its coloured neighbours do not use (a bit mask of <= 62
-    # colours; a node has at most 26 neighbours in a hex mesh). Deterministic priorities.
-    priority = np.random.default_rng(12345).permutation(n_movable).astype(float)
-    colour = np.full(n_movable, -1, dtype=np.int64)
-    deg = np.diff(ptr)
-    has = deg > 0
-    starts = np.minimum(ptr[:-1], max(len(nbrs) - 1, 0))
-    while np.any(colour < 0):
-        uncoloured = colour < 0
-        best = np.full(n_movable, -1.0)
-        mask = np.zeros(n_movable, dtype=np.int64)
-        if len(nbrs):
-            nbr_priority = np.where(uncoloured[nbrs], priority[nbrs], -1.0)
-            best[has] = np.maximum.reduceat(nbr_priority, starts)[has]
-            bits = np.where(colour[nbrs] >= 0, np.left_shift(1, np.maximum(colour[nbrs], 0)), 0)
-            mask[has] = np.bitwise_or.reduceat(bits, starts)[has]
-        chosen = uncoloured & (priority > best)
-        lowest_free = ~mask & (mask + 1)  # lowest zero bit, as a power of two
-        colour[chosen] = np.log2(lowest_free[chosen]).astype(np.int64)
+    # deterministic priorities; the colouring of the Jones-Plassmann rounds, compiled
+    priority = np.random.default_rng(12345).permutation(n_movable)
+    colour = greedy_colours(ptr, nbrs, priority)
     colours = [np.flatnonzero(colour == c) for c in range(int(colour.max()) + 1)]
     colours = [c for c in colours if len(c)]
     return colours, ptr, nbrs

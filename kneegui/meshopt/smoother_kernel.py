@@ -203,3 +203,49 @@ def element_measures(
     else:
         _measure_serial(coords, conn, rows, triples, edges, faces, out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _greedy_colours(ptr, nbrs, order):  # pragma: no cover - compiled
+    colour = np.full(len(ptr) - 1, -1, dtype=np.int64)
+    taken = np.zeros(1, dtype=np.bool_)
+    for node in order:
+        lo, hi = ptr[node], ptr[node + 1]
+        if hi - lo + 1 > taken.shape[0]:
+            taken = np.zeros(hi - lo + 1, dtype=np.bool_)
+        for k in range(lo, hi):
+            c = colour[nbrs[k]]
+            if 0 <= c < taken.shape[0]:
+                taken[c] = True
+        c = 0
+        while taken[c]:
+            c += 1
+        colour[node] = c
+        for k in range(lo, hi):
+            c = colour[nbrs[k]]
+            if 0 <= c < taken.shape[0]:
+                taken[c] = False
+    return colour
+
+
+def greedy_colours(
+    ptr: NDArray[np.int64], nbrs: NDArray[np.int64], priority: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """Colours of a graph's nodes, neighbours never sharing one: each node in decreasing
+    ``priority`` takes the smallest colour its neighbours coloured before it do not use.
+
+    This is the colouring the Jones-Plassmann rounds reach (a node is coloured in the round
+    after all its higher-priority neighbours, and takes the smallest colour they leave), one
+    node at a time instead of a round of array operations per colour.
+
+    Parameters
+    ----------
+    ptr, nbrs : ndarray of int
+        The graph in CSR form: the neighbours of node ``i`` are ``nbrs[ptr[i]:ptr[i + 1]]``.
+    priority : (n,) ndarray of int
+        Distinct priorities (a permutation of ``range(n)``).
+    """
+    order = np.argsort(-np.asarray(priority, dtype=np.int64), kind="stable")
+    return _greedy_colours(
+        np.ascontiguousarray(ptr, dtype=np.int64), np.ascontiguousarray(nbrs, dtype=np.int64), order
+    )

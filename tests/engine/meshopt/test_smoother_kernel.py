@@ -110,3 +110,39 @@ def test_batched_objective_compiled_is_the_numpy_objective(block_model, nodes):
     delta = moves @ problems.projector.transpose(0, 2, 1)
     dets = problems.d0[..., None] + np.einsum("newk,npk->newp", problems.grad, delta)
     assert ((dets.min(axis=2) <= 0) & real[..., None]).any()
+
+
+def _jones_plassmann(ptr, nbrs, priority):
+    """Reference: rounds of the uncoloured nodes whose priority beats every uncoloured
+    neighbour's, each taking the smallest colour its coloured neighbours leave."""
+    n = len(ptr) - 1
+    colour = np.full(n, -1)
+    while (colour < 0).any():
+        chosen = []
+        for i in np.flatnonzero(colour < 0):
+            around = nbrs[ptr[i] : ptr[i + 1]]
+            if all(colour[j] >= 0 or priority[j] < priority[i] for j in around):
+                used = {colour[j] for j in around if colour[j] >= 0}
+                chosen.append((i, min(set(range(len(around) + 1)) - used)))
+        for i, c in chosen:
+            colour[i] = c
+    return colour
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_greedy_colours_are_the_jones_plassmann_colouring(seed):
+    from kneegui.meshopt.smoother_kernel import greedy_colours
+
+    rng = np.random.default_rng(seed)
+    n = 400
+    a = rng.integers(0, n, 3000)
+    b = rng.integers(0, n, 3000)
+    keep = a != b
+    pairs = np.unique(np.stack([np.r_[a[keep], b[keep]], np.r_[b[keep], a[keep]]], 1), axis=0)
+    ptr = np.searchsorted(pairs[:, 0], np.arange(n + 1))
+    nbrs = pairs[:, 1]
+    priority = rng.permutation(n)
+    colour = greedy_colours(ptr, nbrs, priority)
+    np.testing.assert_array_equal(colour, _jones_plassmann(ptr, nbrs, priority))
+    assert np.all(colour[pairs[:, 0]] != colour[pairs[:, 1]])  # a proper colouring
+    assert colour.max() >= 5  # a graph that needs several
