@@ -196,3 +196,36 @@ def quad_barrier_energy(x, quads, rest, weight, eps, grad, ratios):  # pragma: n
             _cross_grad(x, grad, n_i, n_1, n_3, nx, ny, nz, dr)
             _diagonal_cross_grad(x, grad, q0, q1, q2, q3, ux, uy, uz, vx, vy, vz, wx, wy, wz, dr)
     return total
+
+
+@njit(cache=True, nogil=True)
+def scatter_scaled(work, rows, flat, scale):  # pragma: no cover - compiled
+    """``work[rows] = flat.reshape(-1, 3) * scale`` (``scale`` (F, 1)) without the temporaries
+    of NumPy's fancy indexing: the same products, so the same bits."""
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        s = scale[i, 0]
+        work[r, 0] = flat[3 * i] * s
+        work[r, 1] = flat[3 * i + 1] * s
+        work[r, 2] = flat[3 * i + 2] * s
+
+
+@njit(cache=True, nogil=True)
+def gather_rows(grad, rows, out):  # pragma: no cover - compiled
+    """``out[:] = grad[rows]`` (out (F, 3))."""
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        out[i, 0] = grad[r, 0]
+        out[i, 1] = grad[r, 1]
+        out[i, 2] = grad[r, 2]
+
+
+@njit(cache=True, nogil=True)
+def add_at_rows(grad, rows, values):  # pragma: no cover - compiled
+    """``np.add.at(grad, rows, values)``: each row added in turn, in the order given (as
+    ``np.add.at`` adds repeated rows), so the same bits."""
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        grad[r, 0] += values[i, 0]
+        grad[r, 1] += values[i, 1]
+        grad[r, 2] += values[i, 2]
