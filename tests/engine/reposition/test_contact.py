@@ -260,3 +260,23 @@ def test_the_contact_planes_are_the_same_with_the_memo(small_repositioner):
             int(np.sum(np.all(m.where == before[n], axis=1))) for n, m in memo._contact_memo.items()
         )
     assert skipped > 0  # the memo did spare queries
+
+
+def test_compiled_closest_points_are_the_numpy_reference_bit_for_bit():
+    """Every Voronoi region of a triangle (corners, edges, face) and degenerate triangles (two
+    corners together, all three together) give the reference's bits."""
+    from kneegui.reposition.contact import closest_on_triangles, closest_on_triangles_numpy
+
+    rng = np.random.default_rng(11)
+    m = 20000
+    tri = rng.normal(size=(m, 3, 3)) * 10.0 ** rng.integers(-3, 4, (m, 1, 1))
+    p = rng.normal(size=(m, 3)) * 10.0 ** rng.integers(-3, 4, (m, 1))
+    tri[::50, 1] = tri[::50, 0]
+    tri[::77] = tri[::77, :1]
+    p[::33] = tri[::33, 1]
+    got = closest_on_triangles(p, tri)
+    expected = closest_on_triangles_numpy(p, tri)
+    np.testing.assert_array_equal(got, expected)
+    # the points fall in every region: on a corner, inside an edge's span, inside the face
+    at_corner = np.isclose(got[:, None, :], tri).all(axis=2).any(axis=1)
+    assert 0.05 < at_corner.mean() < 0.95
