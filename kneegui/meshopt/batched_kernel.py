@@ -18,26 +18,25 @@ from kneegui.meshopt.parallel import PARALLEL_KERNEL_LOCK, PARALLEL_MIN_ELEMENTS
 
 
 @njit(cache=True, nogil=True)
-def _node_objective(  # pragma: no cover - compiled
-    n,
-    u,
-    x0,
-    projector,
-    d0,
-    grad,
-    size,
-    element,
-    ends,
-    ends_sq,
-    edge,
-    other_lo,
-    other_hi,
-    count,
-    old_worst,
-    old_inverted,
-    aspect_cap,
-    out,
-):
+def _node_objective(n, u, arrays, out):  # pragma: no cover - compiled
+    """Node ``n``'s objective at its trial moves ``u[n]`` into ``out[n]``."""
+    (
+        x0,
+        projector,
+        d0,
+        grad,
+        size,
+        element,
+        ends,
+        ends_sq,
+        edge,
+        other_lo,
+        other_hi,
+        count,
+        old_worst,
+        old_inverted,
+        aspect_cap,
+    ) = arrays
     n_elements, n_dets = d0.shape[1], d0.shape[2]
     for p in range(u.shape[1]):
         # the move, kept in the node's plane (sliding) or free
@@ -92,89 +91,15 @@ def _node_objective(  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _objective_serial(
-    u,
-    x0,
-    projector,
-    d0,
-    grad,
-    size,
-    element,
-    ends,
-    ends_sq,
-    edge,
-    other_lo,
-    other_hi,
-    count,
-    old_worst,
-    old_inverted,
-    aspect_cap,
-    out,
-):  # pragma: no cover - compiled
+def _objective_serial(u, arrays, out):  # pragma: no cover - compiled
     for n in range(u.shape[0]):
-        _node_objective(
-            n,
-            u,
-            x0,
-            projector,
-            d0,
-            grad,
-            size,
-            element,
-            ends,
-            ends_sq,
-            edge,
-            other_lo,
-            other_hi,
-            count,
-            old_worst,
-            old_inverted,
-            aspect_cap,
-            out,
-        )
+        _node_objective(n, u, arrays, out)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _objective_parallel(
-    u,
-    x0,
-    projector,
-    d0,
-    grad,
-    size,
-    element,
-    ends,
-    ends_sq,
-    edge,
-    other_lo,
-    other_hi,
-    count,
-    old_worst,
-    old_inverted,
-    aspect_cap,
-    out,
-):  # pragma: no cover - compiled
+def _objective_parallel(u, arrays, out):  # pragma: no cover - compiled
     for n in prange(u.shape[0]):
-        _node_objective(
-            n,
-            u,
-            x0,
-            projector,
-            d0,
-            grad,
-            size,
-            element,
-            ends,
-            ends_sq,
-            edge,
-            other_lo,
-            other_hi,
-            count,
-            old_worst,
-            old_inverted,
-            aspect_cap,
-            out,
-        )
+        _node_objective(n, u, arrays, out)
 
 
 def compiled_objective(arrays: tuple[NDArray, ...], u: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -189,7 +114,7 @@ def compiled_objective(arrays: tuple[NDArray, ...], u: NDArray[np.float64]) -> N
     n, n_elements = arrays[2].shape[:2]
     if n * n_elements >= PARALLEL_MIN_ELEMENTS:
         with PARALLEL_KERNEL_LOCK:
-            _objective_parallel(u, *arrays, out)
+            _objective_parallel(u, arrays, out)
     else:
-        _objective_serial(u, *arrays, out)
+        _objective_serial(u, arrays, out)
     return out

@@ -27,14 +27,14 @@ from numpy.typing import ArrayLike, NDArray
 from kneegui.errors import Cancelled, GeometryError
 from kneegui.meshopt.batched import build_problems, nelder_mead
 from kneegui.meshopt.nodes import boundary_node_normals, unique_pairs
-from kneegui.meshopt.smoother_kernel import element_measures, greedy_colours
+from kneegui.meshopt.smoother_kernel import QUAD_FACES, element_measures, greedy_colours
 from kneegui.model import ElementBlock, Model
 from kneegui.quality.kernels import (
     ratio_of_determinants,
     scaled_corner_determinants,
 )
 from kneegui.quality.thresholds import JACOBIAN_WARN
-from kneegui.topology import CORNER_NODES, ELEMENT_EDGES, SOLID_FACES, boundary_faces
+from kneegui.topology import CORNER_NODES, ELEMENT_EDGES, boundary_faces
 from kneegui.topology import CORNER_TRIPLES as TOPOLOGY_CORNER_TRIPLES
 
 ProgressCallback = Callable[[float, str], None]
@@ -229,21 +229,13 @@ def edge_ratio(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
     return np.sqrt(out)
 
 
-_QUAD_FACES = {
-    "hex8": np.array(SOLID_FACES["hex8"]),
-    "wedge6": np.array([f for f in SOLID_FACES["wedge6"] if len(f) == 4]),
-    "pyramid5": np.array([f for f in SOLID_FACES["pyramid5"] if len(f) == 4]),
-    "quad4": np.array([(0, 1, 2, 3)]),
-}
-
-
 def warp_cosine(points: NDArray[np.float64], etype: str) -> NDArray[np.float64]:
     """Cosine of the worst quad-face warpage of each element (1: flat faces or none).
 
     Same definition as the reported warpage (both diagonal splits of every quad face).
     """
-    faces = _QUAD_FACES.get(etype)
-    if faces is None:
+    faces = QUAD_FACES.get(etype)
+    if faces is None or len(faces) == 0:
         return np.ones(len(points))
     p = np.moveaxis(points[:, faces], 3, 0)  # (3, m, F, 4)
     p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]

@@ -28,13 +28,17 @@ def _quad_faces(etype: str) -> NDArray[np.int64]:
     return np.array(faces, dtype=np.int64).reshape(-1, 4)
 
 
+#: The quadrilateral faces (F, 4) of each element type whose warpage the smoother measures
+#: (F = 0: none); :func:`kneegui.meshopt.smoother.warp_cosine` reads the same table.
+QUAD_FACES: dict[str, NDArray[np.int64]] = {etype: _quad_faces(etype) for etype in CORNER_TRIPLES}
+
 #: Per element type: corner triples (T, 4) (a negative last entry: the quad's normal), edges
 #: (E, 2) and quadrilateral faces (F, 4).
 TYPE_TABLES: dict[str, tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = {
     etype: (
         np.array(triples, dtype=np.int64),
         np.array(ELEMENT_EDGES[etype], dtype=np.int64),
-        _quad_faces(etype),
+        QUAD_FACES[etype],
     )
     for etype, triples in CORNER_TRIPLES.items()
 }
@@ -148,23 +152,22 @@ def _measure(coords, nodes, triples, edges, faces):  # pragma: no cover - compil
 
 
 @njit(cache=True, nogil=True)
+def _measure_row(coords, conn, rows, k, triples, edges, faces, out):  # pragma: no cover
+    out[0, k], out[1, k], out[2, k], out[3, k] = _measure(
+        coords, conn[rows[k]], triples, edges, faces
+    )
+
+
+@njit(cache=True, nogil=True)
 def _measure_serial(coords, conn, rows, triples, edges, faces, out):  # pragma: no cover
     for k in range(rows.shape[0]):
-        j, s, a, w = _measure(coords, conn[rows[k]], triples, edges, faces)
-        out[0, k] = j
-        out[1, k] = s
-        out[2, k] = a
-        out[3, k] = w
+        _measure_row(coords, conn, rows, k, triples, edges, faces, out)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _measure_parallel(coords, conn, rows, triples, edges, faces, out):  # pragma: no cover
     for k in prange(rows.shape[0]):
-        j, s, a, w = _measure(coords, conn[rows[k]], triples, edges, faces)
-        out[0, k] = j
-        out[1, k] = s
-        out[2, k] = a
-        out[3, k] = w
+        _measure_row(coords, conn, rows, k, triples, edges, faces, out)
 
 
 def element_measures(
