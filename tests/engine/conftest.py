@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from kneegui.model import ElementBlock, Model, Part
+from kneegui.topology import HEX_REFERENCE_COORDS
 
 
 def build_block_model(
@@ -71,3 +72,19 @@ def build_block_model(
 @pytest.fixture
 def block_model():
     return build_block_model
+
+
+#: An undistorted element of each type the smoother handles (node order of kneegui.topology).
+REFERENCE_SHAPES: dict[str, list[tuple[float, float, float]]] = {
+    "hex8": list(HEX_REFERENCE_COORDS),
+    "wedge6": [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1)],
+    "pyramid5": [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0.5, 0.5, 0.7)],
+    "tet4": [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)],
+    "quad4": [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)],
+}
+
+
+@pytest.fixture
+def reference_shape():
+    """``reference_shape(etype)``: an undistorted element's node coordinates (k, 3)."""
+    return lambda etype: np.array(REFERENCE_SHAPES[etype], dtype=float)

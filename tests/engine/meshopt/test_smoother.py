@@ -16,7 +16,7 @@ from kneegui.meshopt import (
     smoothing_sliding_nodes,
 )
 from kneegui.meshopt.nodes import boundary_node_mask
-from kneegui.meshopt.smoother import edge_ratio
+from kneegui.meshopt.smoother import SMOOTHED_TYPES, edge_ratio
 from kneegui.quality import compute_quality
 
 
@@ -300,31 +300,13 @@ def test_colouring_separates_nodes_that_share_an_element(block_model):
     assert len(groups) <= 27  # a structured hex mesh needs 8; the greedy rounds stay close
 
 
-REFERENCE_SHAPES = {
-    "hex8": [
-        (0, 0, 0),
-        (1, 0, 0),
-        (1, 1, 0),
-        (0, 1, 0),
-        (0, 0, 1),
-        (1, 0, 1),
-        (1, 1, 1),
-        (0, 1, 1),
-    ],
-    "wedge6": [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1)],
-    "pyramid5": [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0.5, 0.5, 0.7)],
-    "tet4": [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)],
-    "quad4": [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)],
-}
-
-
-@pytest.mark.parametrize("etype", list(REFERENCE_SHAPES))
-def test_smoother_measure_equals_reported_corner_jacobian(etype):
+@pytest.mark.parametrize("etype", SMOOTHED_TYPES)
+def test_smoother_measure_equals_reported_corner_jacobian(etype, reference_shape):
     """The smoother's fast corner Jacobian is the one the quality report shows."""
     from kneegui.meshopt import corner_quality
     from kneegui.model import ElementBlock
 
-    shape = np.array(REFERENCE_SHAPES[etype], dtype=float)
+    shape = reference_shape(etype)
     n, k = 3000, len(shape)
     pts = np.tile(shape, (n, 1)) + np.random.default_rng(9).uniform(-0.3, 0.3, (n * k, 3))
     conn = np.arange(n * k).reshape(n, k)
