@@ -108,12 +108,57 @@ class QualityAims:
     aspect: Mapping[str, NDArray[np.float64]]
     warpage: Mapping[str, NDArray[np.float64]]
     skew: Mapping[str, NDArray[np.float64]]
-    volume: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
+    volume: Mapping[str, NDArray[np.float64] | RestVolumes] = field(default_factory=dict)
     volume_change: float = np.inf
     tet_collapse: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
     tet_dihedral_sine: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
     tet_vol_skew: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
     gate: Mapping[str, float] = field(default_factory=dict)
+
+
+class RestVolumes:
+    """The rest volume of each element of a block (the mean of its corner determinants),
+    worked out for the rows asked for, when first asked for.
+
+    The optimiser reads the volumes of the elements around the knee only; on a whole-body model
+    measuring every element up front cost seconds. The mean of an element's corner
+    determinants doesn't depend on which other rows are measured with it, so it is the same
+    value in every bit (tested).
+
+    Parameters
+    ----------
+    rest_coords : (N, 3) ndarray
+        The initial coordinates (kept by reference: not to be modified).
+    conn : (M, k) ndarray of int
+        The block's connectivity.
+    etype : str
+        A solid type of :data:`kneegui.topology.CORNER_NODES`.
+    """
+
+    def __init__(
+        self, rest_coords: NDArray[np.float64], conn: NDArray[np.int64], etype: str
+    ) -> None:
+        self._coords = rest_coords
+        self._conn = conn[:, : CORNER_NODES[etype]]
+        self._etype = etype
+        self._values = np.full(len(conn), np.nan)
+        self._known = np.zeros(len(conn), dtype=bool)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __getitem__(self, rows: NDArray[np.int64]) -> NDArray[np.float64]:
+        rows = np.arange(len(self))[rows]  # any index numpy accepts, as row numbers
+        missing = np.unique(rows[~self._known[rows]])
+        if len(missing):
+            points = self._coords[self._conn[missing]]
+            self._values[missing] = corner_determinants(points, self._etype).mean(axis=1)
+            self._known[missing] = True
+        return self._values[rows]
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> NDArray[np.float64]:
+        values = self[np.arange(len(self))]
+        return values if dtype is None else values.astype(dtype)
 
 
 def quality_aims(
@@ -215,12 +260,11 @@ def quality_aims(
         for etype in TET_TYPES:
             if etype in blocks:
                 skew[etype] = np.full(len(blocks[etype]), gate["vol_skew"])
-    volume: dict[str, NDArray[np.float64]] = {}
+    volume: dict[str, RestVolumes] = {}
     if rest_coords is not None and volume_change is not None:
         for etype in SOLID_CORNER_TYPES:
             if etype in blocks and len(blocks[etype]):
-                conn = blocks[etype].conn[:, : CORNER_NODES[etype]]
-                volume[etype] = corner_determinants(rest_coords[conn], etype).mean(axis=1)
+                volume[etype] = RestVolumes(rest_coords, blocks[etype].conn, etype)
     return QualityAims(
         **out,
         volume=volume,

@@ -554,3 +554,25 @@ def test_the_volume_aim_stops_elements_being_shrunk_out_of_the_way(block_model):
     plain, _ = optimise_quality(squeezed, model.blocks, interior, quality_aims(q0, model.blocks))
     ratio_plain = compute_quality(plain, model.blocks)["hex8"].volume / q0["hex8"].volume
     assert ratio_plain.min() < 0.7  # nothing asked it to restore the volume
+
+
+def test_rest_volumes_are_measured_when_asked_for_and_the_same_bits_as_the_whole_block(
+    block_model,
+):
+    """The volume aims measure only the rows the optimiser reads (a whole-body model has
+    millions of elements far from the knee), each to the bit of measuring the whole block."""
+    from kneegui.quality.kernels import corner_determinants
+
+    model, coords = distorted_block(block_model)
+    q0 = compute_quality(coords, model.blocks)
+    aims = quality_aims(q0, model.blocks, rest_coords=coords, volume_change=0.2)
+    volumes = aims.volume["hex8"]
+    assert not volumes._known.any()  # nothing measured up front
+    whole = corner_determinants(coords[model.blocks["hex8"].conn], "hex8").mean(axis=1)
+    rng = np.random.default_rng(3)
+    for size in (1, 5, len(whole) // 2):
+        rows = rng.choice(len(whole), size)  # repeats included
+        np.testing.assert_array_equal(volumes[rows], whole[rows])
+    assert 0 < volumes._known.sum() < len(whole)
+    np.testing.assert_array_equal(np.asarray(volumes), whole)
+    np.testing.assert_array_equal(volumes[np.arange(len(whole)) % 2 == 0], whole[::2])
