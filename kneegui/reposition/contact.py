@@ -339,6 +339,7 @@ class _Surface:
     segment: str
     distance: BoneSurfaceDistance
     floor: NDArray[np.float64]  # (C,) clearance each candidate keeps from this bone
+    rows: NDArray[np.int64]  # the candidates with a finite floor (the others never touch it)
 
 
 class BoneContact:
@@ -383,15 +384,22 @@ class BoneContact:
         distances = []
         for segment, distance in bone_surfaces.items():
             d, _ = distance.tree.query(coords[soft], distance_upper_bound=reach)
-            near |= np.isfinite(d)
-            distances.append((segment, distance))
+            found = np.isfinite(d)
+            near |= found
+            distances.append((segment, distance, found))
         self.candidates = soft[near]
         self.surfaces: list[_Surface] = []
-        for segment, distance in distances:
-            depth, _, _, node_distance = distance.query(coords[self.candidates])
+        for segment, distance, found in distances:
+            # a candidate with no surface node of this bone within reach keeps no clearance from
+            # it: measured only where one is (each point is measured on its own, so the values
+            # are those of measuring every candidate)
+            rows = np.flatnonzero(found[near])
+            depth, _, _, node_distance = distance.query(coords[self.candidates[rows]])
             close = node_distance < reach
-            floor = np.where(close & (depth >= 0), np.minimum(depth, clearance), -np.inf)
-            self.surfaces.append(_Surface(segment, distance, floor))
+            floor = np.full(len(self.candidates), -np.inf)
+            floor[rows] = np.where(close & (depth >= 0), np.minimum(depth, clearance), -np.inf)
+            kept = np.flatnonzero(np.isfinite(floor))
+            self.surfaces.append(_Surface(segment, distance, floor, kept))
         # Laplacian extension: candidates and non-soft nodes are held, the other soft nodes free
         free = soft[~near]
         n_all = len(coords)
@@ -462,10 +470,17 @@ class BoneContact:
         p = positions[self.candidates]
         push = np.zeros_like(p)
         for srf in self.surfaces:
+            if len(srf.rows) == 0:
+                continue
             t = transforms[srf.segment]
             local = t.inverse().apply(p + push)
-            depth, q, _, node_distance = srf.distance.query(local)
-            bad = (node_distance < self.reach) & (depth < srf.floor)
+            # only the candidates with a floor for this bone can be pushed out of it
+            depth = np.full(len(p), np.inf)
+            q = np.zeros_like(p)
+            found, q[srf.rows], _, node_distance = srf.distance.query(local[srf.rows])
+            depth[srf.rows] = found
+            bad = np.zeros(len(p), dtype=bool)
+            bad[srf.rows] = (node_distance < self.reach) & (found < srf.floor[srf.rows])
             if bad.any():
                 direction = local[bad] - q[bad]
                 norm = np.linalg.norm(direction, axis=1, keepdims=True)

@@ -282,3 +282,25 @@ def test_compiled_closest_points_are_the_numpy_reference():
     # the points fall in every region: on a corner, inside an edge's span, inside the face
     at_corner = np.isclose(got[:, None, :], tri).all(axis=2).any(axis=1)
     assert 0.05 < at_corner.mean() < 0.95
+
+
+def test_the_push_measures_each_bone_only_where_it_holds_a_clearance(small_repositioner):
+    """A candidate with no surface node of a bone within reach keeps no clearance from that
+    bone, so the contact measures it against the others only; the push is the same, bit for
+    bit, as measuring every candidate against every bone."""
+    rep = small_repositioner
+    contact = rep._bone_contact(rep.options.relax_contact_reach)
+    n = len(contact.candidates)
+    for srf in contact.surfaces:
+        np.testing.assert_array_equal(srf.rows, np.flatnonzero(np.isfinite(srf.floor)))
+    assert sum(len(srf.rows) for srf in contact.surfaces) < len(contact.surfaces) * n
+    mapped = rep.pose(90.0)
+    bone = rep.bone_pose(90.0)
+    fast = mapped.copy()
+    pushed = contact.resolve(fast, bone.transforms)
+    assert pushed > 0
+    for srf in contact.surfaces:  # the former way: every candidate against every bone
+        srf.rows = np.arange(n)
+    every = mapped.copy()
+    assert contact.resolve(every, bone.transforms) == pushed
+    np.testing.assert_array_equal(fast, every)
