@@ -82,6 +82,26 @@ TET10_MIDSIDE = {4: (0, 1), 5: (1, 2), 6: (2, 0), 7: (0, 3), 8: (1, 3), 9: (2, 3
 APEX_DEPTH = 0.3
 
 
+def row_labels(keys: NDArray[np.int64], n_nodes: int) -> NDArray[np.int64]:
+    """One label per row of ``keys`` (M, 4) (node indices, or -1), equal exactly where the
+    rows are equal.
+
+    ``np.unique(keys, axis=0)`` compares rows as raw bytes and took seconds for a whole-body
+    model's faces. Here each pair of columns is packed into one integer, and the rank of the
+    first pair with the second becomes one sortable integer. The labels are not ``np.unique``'s
+    inverse, but the callers only match equal rows, which is the same in both.
+    """
+    base = n_nodes + 1
+    first = (keys[:, 0] + 1) * base + (keys[:, 1] + 1)
+    second = (keys[:, 2] + 1) * base + (keys[:, 3] + 1)
+    _, rank = np.unique(first, return_inverse=True)
+    if (int(rank.max(initial=0)) + 1) * base * base >= np.iinfo(np.int64).max:
+        _, labels = np.unique(keys, axis=0, return_inverse=True)  # would overflow: bytes
+        return labels.ravel()
+    _, labels = np.unique(rank.ravel() * (base * base) + second, return_inverse=True)
+    return labels.ravel()
+
+
 def shell_face_tetrahedra(
     blocks: Mapping[str, ElementBlock],
     shell_masks: Mapping[str, NDArray[np.bool_]],
@@ -138,9 +158,7 @@ def shell_face_tetrahedra(
     if len(s_keys) == 0:  # shell roles present but without shells (e.g. no skin part)
         return empty
     # match shells to solid faces by their sorted node tuples
-    both = np.concatenate([face_keys, s_keys])
-    _, inverse = np.unique(both, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    inverse = row_labels(np.concatenate([face_keys, s_keys]), n_nodes)
     face_id, shell_id = inverse[: len(face_keys)], inverse[len(face_keys) :]
     order = np.argsort(face_id, kind="stable")
     sorted_ids = face_id[order]

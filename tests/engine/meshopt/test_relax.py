@@ -581,3 +581,16 @@ def test_the_quality_stage_mends_an_element_the_pose_took_past_the_gate_beyond_i
     slid = np.abs(mended[skin] - posed[skin])
     assert slid[:, :2].max() > 0.05  # the skin helped, along its plane
     assert slid[:, 2].max() < 1e-4  # and stayed in it
+
+
+@pytest.mark.parametrize("n_nodes", [50, 2**31])  # the second overflows the packing: bytes
+def test_row_labels_are_equal_exactly_where_the_rows_are(n_nodes):
+    from kneegui.reposition.relax import row_labels
+
+    rng = np.random.default_rng(5)
+    rows = np.sort(rng.integers(-1, 50, size=(400, 4)), axis=1)
+    keys = np.concatenate([rows, rows[rng.integers(0, 400, 300)]])  # with repeats
+    labels = row_labels(keys, n_nodes)
+    same_label = labels[:, None] == labels[None, :]
+    same_row = np.all(keys[:, None, :] == keys[None, :, :], axis=2)
+    np.testing.assert_array_equal(same_label, same_row)
