@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kneegui.meshopt.nodes import boundary_node_mask, node_part_count
-from kneegui.model import Model
+from kneegui.model import ElementBlock, Model
 from kneegui.quality.metrics import QualityResult
 from kneegui.quality.thresholds import JACOBIAN_WARN
 
@@ -98,6 +98,22 @@ def _base_candidates(
     return near & soft_nodes & ~blocked, soft
 
 
+def elements_touching(
+    blocks: Mapping[str, ElementBlock], node_mask: NDArray[np.bool_]
+) -> dict[str, ElementBlock]:
+    """The elements of each block with a node in ``node_mask`` (every block kept, maybe empty).
+
+    Every element using a node is among them, so whatever depends only on the elements around
+    a node (the parts sharing it, whether a face through it is on the boundary) comes out the
+    same for the masked nodes as from the whole model.
+    """
+    out = {}
+    for etype, block in blocks.items():
+        rows = np.flatnonzero(node_mask[block.conn].any(axis=1)) if len(block) else np.zeros(0, int)
+        out[etype] = ElementBlock(etype, block.ids[rows], block.part_ids[rows], block.conn[rows])
+    return out
+
+
 def smoothing_free_nodes(
     model: Model,
     soft_tissue_part_ids: Iterable[int],
@@ -133,18 +149,21 @@ def smoothing_free_nodes(
         solid mesh, not in a fixed part, and within ``rings`` elements of a degraded element.
     """
     free, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
+    # whether a node is shared by parts or lies on the boundary depends only on the elements
+    # using it: look at those around the candidates alone, not at a whole-body model
+    around = elements_touching(model.blocks, free)
     if soft_interfaces:
         # nodes touched by anything other than soft-tissue solids stay
         other = np.zeros(model.n_nodes, dtype=bool)
-        for etype, block in model.blocks.items():
+        for etype, block in around.items():
             if len(block) == 0:
                 continue
             outside = ~np.isin(block.part_ids, soft) | (etype not in MOVABLE_SOLID_TYPES)
             other[block.conn[outside].reshape(-1)] = True
         free &= ~other
     else:
-        free &= node_part_count(model.blocks, model.n_nodes) == 1
-    free &= ~boundary_node_mask(model.n_nodes, model.blocks)
+        free &= node_part_count(around, model.n_nodes) == 1
+    free &= ~boundary_node_mask(model.n_nodes, around)
     fixed = list(fixed_part_ids)
     if fixed:
         free[model.part_node_indices(fixed)] = False
@@ -171,12 +190,13 @@ def smoothing_sliding_nodes(
     """
     near, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
     allowed_parts = set(soft.tolist()) | set(int(p) for p in skin_part_ids)
+    around = elements_touching(model.blocks, near)  # all that decides for the near nodes
     other = np.zeros(model.n_nodes, dtype=bool)
-    for block in model.blocks.values():
+    for block in around.values():
         if len(block):
             outside = ~np.isin(block.part_ids, list(allowed_parts))
             other[block.conn[outside].reshape(-1)] = True
-    sliding = near & ~other & boundary_node_mask(model.n_nodes, model.blocks)
+    sliding = near & ~other & boundary_node_mask(model.n_nodes, around)
     fixed = list(fixed_part_ids)
     if fixed:
         sliding[model.part_node_indices(fixed)] = False

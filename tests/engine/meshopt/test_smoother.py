@@ -412,3 +412,45 @@ def test_position_guard_is_obeyed(block_model):
 def test_smooth_options_are_validated_where_they_are_made(bad):
     with pytest.raises(ValueError, match="SmoothOptions"):
         SmoothOptions(**bad)
+
+
+@pytest.mark.parametrize("soft_interfaces", [False, True])
+def test_free_and_sliding_nodes_read_only_the_elements_around_them(soft_interfaces):
+    """Which nodes the smoother may move depends on the elements around each candidate (the
+    parts sharing it, the boundary faces through it): worked out from those alone, as a
+    whole-body model needs, it is the same selection as from every element of the model."""
+    from kneegui import demo
+    from kneegui.meshopt.free_nodes import MOVABLE_SOLID_TYPES, _base_candidates
+    from kneegui.meshopt.nodes import node_part_count
+    from kneegui.setup import load_setup
+
+    leg = demo.generate_demo_leg(2000)
+    model, setup = leg.model, load_setup(leg.setup, leg.model)
+    soft = setup.parts_of("flesh", "ligament", "meniscus", "tendon", "capsule")
+    skin, fixed = setup.parts_of("skin"), setup.parts_of("femur", "tibia", "patella")
+    rng = np.random.default_rng(11)
+    degraded = {e: rng.random(len(b)) < 0.02 for e, b in model.blocks.items()}
+    free = smoothing_free_nodes(model, soft, fixed, degraded, 2, soft_interfaces)
+    sliding = smoothing_sliding_nodes(model, soft, skin, fixed, degraded, 2)
+    # the whole-model reference
+    near, soft_ids = _base_candidates(model, soft, degraded, 2)
+    if soft_interfaces:
+        other = np.zeros(model.n_nodes, dtype=bool)
+        for etype, block in model.blocks.items():
+            outside = ~np.isin(block.part_ids, soft_ids) | (etype not in MOVABLE_SOLID_TYPES)
+            other[block.conn[outside].reshape(-1)] = True
+        expected = near & ~other
+    else:
+        expected = near & (node_part_count(model.blocks, model.n_nodes) == 1)
+    expected &= ~boundary_node_mask(model.n_nodes, model.blocks)
+    expected[model.part_node_indices(fixed)] = False
+    assert expected.sum() > 50
+    np.testing.assert_array_equal(free, expected)
+    allowed = list(set(soft_ids.tolist()) | set(skin))
+    other = np.zeros(model.n_nodes, dtype=bool)
+    for block in model.blocks.values():
+        other[block.conn[~np.isin(block.part_ids, allowed)].reshape(-1)] = True
+    expected_sliding = near & ~other & boundary_node_mask(model.n_nodes, model.blocks)
+    expected_sliding[model.part_node_indices(fixed)] = False
+    assert expected_sliding.sum() > 10
+    np.testing.assert_array_equal(sliding, expected_sliding)
