@@ -333,23 +333,17 @@ class FoldoverEnergy:
         local[is_virtual] = m + np.searchsorted(used_virtual, tets[is_virtual] - n)
         self.tets = local
         self.m = m
-        g = inv_rest  # J = E @ G
-        self.g_rows = np.ascontiguousarray(g)  # (C, 3, 3) for the compiled kernel
-        self.g = np.ascontiguousarray(np.transpose(g, (1, 2, 0)))  # (3 edges, 3, C)
+        self.g_rows = np.ascontiguousarray(inv_rest)  # (C, 3, 3), J = E @ G
         self.weight = weight
         self.theta = volume_weight
         self.free = np.searchsorted(self.nodes, free)  # local indices of the free nodes
-        # gradient scatter: d_edges (3 edges x C, 3) -> nodes, as one sparse product
-        c, size = len(self.tets), m + len(used_virtual)
-        cols = np.arange(3 * c)
-        ends = self.tets[:, 1:].T.ravel()  # column j * C + corner
-        plus = sp.csr_matrix((np.ones(3 * c), (ends, cols)), shape=(size, 3 * c))
-        base = np.tile(self.tets[:, 0], 3)
-        minus = sp.csr_matrix((np.ones(3 * c), (base, cols)), shape=(size, 3 * c))
-        self.scatter = (plus - minus).tocsr()
+        self._size = m + len(used_virtual)
         # diagonal of the shape term's Hessian at rest, per node: a preconditioner
-        end_sq = np.einsum("jkc,jkc->jc", self.g, self.g)
-        base_sq = np.sum(self.g.sum(axis=0) ** 2, axis=0)
+        size, g = self._size, self.g
+        ends = self.tets[:, 1:].T.ravel()  # edge j of corner c at j * C + c
+        end_sq = np.einsum("jkc,jkc->jc", g, g)
+        base_sq = np.sum(g.sum(axis=0) ** 2, axis=0)
+        del g
         diag = np.zeros(size)
         np.add.at(diag, ends, np.tile(self.weight, 3) * end_sq.ravel())
         np.add.at(diag, self.tets[:, 0], self.weight * base_sq)
@@ -358,6 +352,25 @@ class FoldoverEnergy:
         self.diagonal = diag[:m]
         self._buffers: NDArray[np.float64] | None = None
         self._cut = part_bounds(len(self.tets))
+
+    @property
+    def g(self) -> NDArray[np.float64]:
+        """(3 edges, 3, C) the inverse rest edge matrices, edge-major (the NumPy reference's
+        layout); made when asked for, since the compiled kernel reads :attr:`g_rows` and a
+        whole-body model's region has millions of corners."""
+        return np.ascontiguousarray(np.transpose(self.g_rows, (1, 2, 0)))
+
+    @property
+    def scatter(self) -> sp.csr_matrix:
+        """(nodes, 3 C) the gradient scatter of the NumPy reference: edge gradients
+        (3 edges x C, 3) to nodes as one sparse product; made when asked for."""
+        c, size = len(self.tets), self._size
+        cols = np.arange(3 * c)
+        ends = self.tets[:, 1:].T.ravel()  # column j * C + corner
+        plus = sp.csr_matrix((np.ones(3 * c), (ends, cols)), shape=(size, 3 * c))
+        base = np.tile(self.tets[:, 0], 3)
+        minus = sp.csr_matrix((np.ones(3 * c), (base, cols)), shape=(size, 3 * c))
+        return (plus - minus).tocsr()
 
     def augment(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Local real coordinates (m, 3) followed by the virtual nodes' coordinates."""
