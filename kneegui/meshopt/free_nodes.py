@@ -107,11 +107,9 @@ def elements_touching(
     a node (the parts sharing it, whether a face through it is on the boundary) comes out the
     same for the masked nodes as from the whole model.
     """
-    out = {}
-    for etype, block in blocks.items():
-        rows = np.flatnonzero(node_mask[block.conn].any(axis=1)) if len(block) else np.zeros(0, int)
-        out[etype] = ElementBlock(etype, block.ids[rows], block.part_ids[rows], block.conn[rows])
-    return out
+    return {
+        etype: block.select(node_mask[block.conn].any(axis=1)) for etype, block in blocks.items()
+    }
 
 
 def smoothing_free_nodes(

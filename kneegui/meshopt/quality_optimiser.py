@@ -148,7 +148,9 @@ class RestVolumes:
         return len(self._values)
 
     def __getitem__(self, rows: NDArray[np.int64]) -> NDArray[np.float64]:
-        rows = np.arange(len(self))[rows]  # any index numpy accepts, as row numbers
+        rows = np.asarray(rows)
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)
         missing = np.unique(rows[~self._known[rows]])
         if len(missing):
             points = self._coords[self._conn[missing]]
