@@ -473,14 +473,16 @@ class BoneContact:
             if len(srf.rows) == 0:
                 continue
             t = transforms[srf.segment]
+            # every candidate transformed together, as before (a matrix product over another
+            # number of rows may round differently); only those with a floor for this bone can
+            # be pushed out of it, so only they are measured
             local = t.inverse().apply(p + push)
-            # only the candidates with a floor for this bone can be pushed out of it
             depth = np.full(len(p), np.inf)
             q = np.zeros_like(p)
-            found, q[srf.rows], _, node_distance = srf.distance.query(local[srf.rows])
-            depth[srf.rows] = found
+            measured, q[srf.rows], _, node_distance = srf.distance.query(local[srf.rows])
+            depth[srf.rows] = measured
             bad = np.zeros(len(p), dtype=bool)
-            bad[srf.rows] = (node_distance < self.reach) & (found < srf.floor[srf.rows])
+            bad[srf.rows] = (node_distance < self.reach) & (measured < srf.floor[srf.rows])
             if bad.any():
                 direction = local[bad] - q[bad]
                 norm = np.linalg.norm(direction, axis=1, keepdims=True)
