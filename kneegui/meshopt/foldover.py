@@ -339,11 +339,14 @@ class FoldoverEnergy:
         self.free = np.searchsorted(self.nodes, free)  # local indices of the free nodes
         self._size = m + len(used_virtual)
         # diagonal of the shape term's Hessian at rest, per node: a preconditioner
-        size, g = self._size, self.g
+        # (summed term by term from g_rows, in the order of the edge-major sums: no (3, 3, C)
+        # copy of every corner's matrix)
+        size, g = self._size, self.g_rows
         ends = self.tets[:, 1:].T.ravel()  # edge j of corner c at j * C + c
-        end_sq = np.einsum("jkc,jkc->jc", g, g)
-        base_sq = np.sum(g.sum(axis=0) ** 2, axis=0)
-        del g
+        end_sq = (g[:, :, 0] ** 2 + g[:, :, 1] ** 2 + g[:, :, 2] ** 2).T
+        col = g[:, 0] + g[:, 1] + g[:, 2]  # (C, 3): the three edges' rows summed
+        base_sq = col[:, 0] ** 2 + col[:, 1] ** 2 + col[:, 2] ** 2
+        del col
         diag = np.zeros(size)
         np.add.at(diag, ends, np.tile(self.weight, 3) * end_sq.ravel())
         np.add.at(diag, self.tets[:, 0], self.weight * base_sq)

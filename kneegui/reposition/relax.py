@@ -201,6 +201,85 @@ def shell_face_tetrahedra(
     return np.concatenate(tets).astype(np.int64), virtual
 
 
+#: Corners measured at a time when the relaxation is built (bounds the temporaries: the
+#: whole-body demos have millions of corners).
+CORNER_CHUNK = 1 << 16
+
+
+def _rest_corner_geometry(
+    x: NDArray[np.float64], tets: NDArray[np.int64]
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+    """Which corners are usable (not flat at rest), and the inverse rest edge matrices
+    ``(U, 3, 3)`` and rest determinants ``(U,)`` of the usable ones.
+
+    Measured :data:`CORNER_CHUNK` corners at a time: each corner's figures are computed on
+    their own, so they are those of measuring all at once, without the (C, 3, 3) edge matrices
+    of every corner held together.
+    """
+    bounds = range(0, len(tets), CORNER_CHUNK)
+    usable = np.zeros(len(tets), dtype=bool)
+    det = np.empty(len(tets))
+    for lo in bounds:
+        e0 = edge_matrices(x, tets[lo : lo + CORNER_CHUNK])
+        d = det[lo : lo + CORNER_CHUNK] = np.linalg.det(e0)
+        scale = np.maximum(np.abs(e0).max(axis=(1, 2)) ** 3, 1e-300)
+        usable[lo : lo + CORNER_CHUNK] = np.abs(d) > 1e-12 * scale
+    inv = np.empty((int(usable.sum()), 3, 3))
+    at = 0
+    for lo in bounds:
+        keep = usable[lo : lo + CORNER_CHUNK]
+        if keep.any():
+            rows = tets[lo : lo + CORNER_CHUNK][keep]
+            inv[at : at + len(rows)] = np.linalg.inv(edge_matrices(x, rows))
+            at += len(rows)
+    return usable, inv, det[usable]
+
+
+def edge_adjacency(a: NDArray[np.int64], b: NDArray[np.int64], n: int) -> sp.csr_matrix:
+    """(n, n) int8 adjacency (1 where two nodes share an edge ``a[i]``-``b[i]``, both ways) of
+    the edges whose ends are both below ``n``; built from packed edge keys, without the
+    float64 triplets of a sparse sum."""
+    real = (a < n) & (b < n)
+    a, b = a[real].astype(np.int64), b[real].astype(np.int64)
+    one_way = sorted_unique(a * n + b)
+    keys = sorted_unique(np.concatenate([one_way, (one_way % n) * n + one_way // n]))
+    del one_way
+    rows = keys // n
+    index = np.int32 if max(n, len(keys)) < 2**31 else np.int64
+    indptr = np.zeros(n + 1, dtype=index)
+    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+    return sp.csr_matrix(
+        (np.ones(len(keys), dtype=np.int8), (keys % n).astype(index), indptr), shape=(n, n)
+    )
+
+
+class NodeRows:
+    """The corners (rows of ``tets``) around each real node (below ``n``), as a compressed
+    row index: :meth:`touching` picks the corners touching a set of nodes."""
+
+    def __init__(self, tets: NDArray[np.int64], n: int) -> None:
+        flat = tets.ravel()
+        real = flat < n
+        # stable: each node's corners in ascending order
+        order = np.argsort(np.where(real, flat, n), kind="stable")[: int(real.sum())]
+        index = np.int32 if len(tets) < 2**31 else np.int64
+        self.indices = (order // tets.shape[1]).astype(index)
+        del order
+        self.indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(flat[real], minlength=n), out=self.indptr[1:])
+
+    def touching(self, nodes: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Sorted rows of the corners with a node among ``nodes``."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        starts = self.indptr[nodes]
+        counts = self.indptr[nodes + 1] - starts
+        total = int(counts.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.int64)
+        offsets = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(total)
+        return sorted_unique(self.indices[offsets]).astype(np.int64)
+
+
 def _pinned_corners(
     tets: NDArray[np.int64], is_free: NDArray[np.bool_], segment_of: NDArray[np.int64]
 ) -> NDArray[np.bool_]:
@@ -365,16 +444,13 @@ class ElasticRelaxation:
             pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64))
             self.pinned_corners = int(pinned.sum())
             tets = tets[~pinned]
-        e0 = edge_matrices(self.augment(rest_coords), tets)
-        det0 = np.linalg.det(e0)
-        usable = np.abs(det0) > 1e-12 * np.maximum(np.abs(e0).max(axis=(1, 2)) ** 3, 1e-300)
+        usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets)
         self.tets = tets[usable]
-        self.inv_rest = np.linalg.inv(e0[usable])  # G: J = E @ G
+        del tets
         self.weight = (
-            np.ones(int(usable.sum()))
-            if self.options.uniform_weights
-            else np.abs(det0[usable]) / 6.0
+            np.ones(len(self.tets)) if self.options.uniform_weights else np.abs(det0) / 6.0
         )
+        del det0
         # free nodes that are not in any tetrahedron have no energy: leave them alone
         in_tet = np.zeros(n_aug, dtype=bool)
         in_tet[self.tets.ravel()] = True
@@ -384,18 +460,9 @@ class ElasticRelaxation:
         self._rest_flat: bool | None = None  # :meth:`_flat_at_rest`
         self.n_nodes = n
         # node adjacency along the corner edges (real nodes), for growing the relaxed region
-        a = np.repeat(self.tets[:, 0], 3)
-        b = self.tets[:, 1:].ravel()
-        real = b < n
-        adj = sp.csr_matrix((np.ones(int(real.sum())), (a[real], b[real])), shape=(n, n))
-        self._adjacency = ((adj + adj.T) > 0).astype(np.int8).tocsr()
+        self._adjacency = edge_adjacency(np.repeat(self.tets[:, 0], 3), self.tets[:, 1:].ravel(), n)
         # corner rows by (real) node, to pick the corners touching a set of nodes
-        flat = self.tets.ravel()
-        owner = np.repeat(np.arange(len(self.tets)), 4)
-        real = flat < n
-        self._node_rows = sp.csr_matrix(
-            (np.ones(int(real.sum())), (flat[real], owner[real])), shape=(n, len(self.tets))
-        )
+        self._node_rows = NodeRows(self.tets, n)
         self.bones = {
             name: tri if isinstance(tri, BoneSurfaceDistance) else BoneSurfaceDistance(tri)
             for name, tri in (bones or {}).items()
@@ -519,11 +586,15 @@ class ElasticRelaxation:
     # ------------------------------------------------------------------ region
     def corner_distortion(self, x: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
         """Per corner: det J and the shape distortion ``|J|^2 / (3 det J^(2/3))`` (1 = similar)."""
-        jac = edge_matrices(self.augment(x), self.tets) @ self.inv_rest
-        det = np.linalg.det(jac)
-        frob = np.einsum("cij,cij->c", jac, jac)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            shape = np.where(det > 0, frob / (3.0 * np.cbrt(det) ** 2), np.inf)
+        xa = self.augment(x)
+        det, shape = np.empty(len(self.tets)), np.empty(len(self.tets))
+        for lo in range(0, len(self.tets), CORNER_CHUNK):
+            part = slice(lo, lo + CORNER_CHUNK)
+            jac = edge_matrices(xa, self.tets[part]) @ self.inv_rest[part]
+            d = det[part] = np.linalg.det(jac)
+            frob = np.einsum("cij,cij->c", jac, jac)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                shape[part] = np.where(d > 0, frob / (3.0 * np.cbrt(d) ** 2), np.inf)
         return det, shape
 
     def degraded_region(
@@ -606,7 +677,7 @@ class ElasticRelaxation:
     # ------------------------------------------------------------------ solve
     def energy(self, free: NDArray[np.int64]) -> FoldoverEnergy:
         """The foldover-free energy of the corners touching the nodes ``free``."""
-        rows = sorted_unique(self._node_rows[free].indices)
+        rows = self._node_rows.touching(free)
         return FoldoverEnergy(
             self.tets[rows],
             self.inv_rest[rows],
@@ -874,11 +945,13 @@ class ElasticRelaxation:
                     # 90 deg: 4,801 of them after the first round, 90 after the eighth)
                     stuck = whole.nodes[self._stuck_nodes(whole, det_whole)]
                     nodes = self._within_rings(stuck, opt.focus_rings, pass_free)
-                    same = np.array_equal(nodes, sub.nodes[sub.free])
-                    focus = sub if same else self.energy(nodes)
+                    focus = sub if np.array_equal(nodes, sub.nodes[sub.free]) else nodes
                 if focus is not sub:
                     x[sub.nodes] = xl
-                    sub = focus
+                    # let the last round's energy go before the next one is built: on a
+                    # whole-body model each holds hundreds of MB of corners
+                    sub = fun = None
+                    sub = self.energy(focus) if isinstance(focus, np.ndarray) else focus
                     xl, scale, sliding, is_sub_free, contact_global = variables(sub, pass_contact)
         x[sub.nodes] = xl
         if sub is not whole:

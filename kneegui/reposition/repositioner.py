@@ -566,8 +566,11 @@ class Repositioner:
             for e, b in model.blocks.items()
         }
         shells = {e: solids.pop(e) for e in ("quad4", "tri3") if e in solids}
-        tets = corner_tetrahedra(model.blocks, solids)
         face_tets, virtual = shell_face_tetrahedra(model.blocks, shells, solids, model.n_nodes)
+        # one array of corners, not the two it is made of as well (a whole-body model's region
+        # has millions)
+        tets = np.concatenate([corner_tetrahedra(model.blocks, solids), face_tets])
+        del face_tets
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         initial = self.initial_quality()
         options = (self.options.improvement.relax or RelaxOptions()).scaled(self.length_scale)
@@ -579,7 +582,7 @@ class Repositioner:
             margin *= self.length_scale
         return ElasticRelaxation(
             model.coords,
-            np.concatenate([tets, face_tets]),
+            tets,
             free,
             self._bone_surfaces(),
             options=options,

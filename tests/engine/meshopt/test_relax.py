@@ -535,6 +535,36 @@ def test_rounds_after_one_that_left_corners_inverted_move_only_the_nodes_around_
     assert max(nodes[1:-1]) < 0.5 * whole.free_nodes  # rounds in between: around the fold
 
 
+def test_a_focused_round_lets_the_last_rounds_energy_go_before_building_its_own():
+    """Each energy holds its corners' inverse rest matrices (hundreds of MB over a whole-body
+    region): when a round focuses on other nodes, the energy of the round before is released
+    first, so at most the whole region's and the one being built exist together."""
+    import gc
+    import weakref
+
+    coords, blocks, boundary, node = hex_block(8)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    tangled = coords.copy()
+    tangled[node(2, 2, 2)] += [25.0, 3.0, -2.0]
+    tangled[node(6, 6, 6)] += [-9.0, 0.0, 0.0]
+    relax = relaxation(coords, blocks, free, focus_rings=1, iterations_per_round=2)
+    built, alive_then = [], []
+    energy = relax.energy
+
+    def counting_energy(nodes):
+        gc.collect()
+        alive_then.append(sum(ref() is not None for ref in built))
+        sub = energy(nodes)
+        built.append(weakref.ref(sub))
+        return sub
+
+    relax.energy = counting_energy
+    _, report = relax.relax(tangled)
+    assert report.inverted_corners_after == 0
+    assert len(built) >= 3  # the whole region, then focused rounds
+    assert max(alive_then) == 1  # the whole region's energy only
+
+
 def test_relax_options_reject_negative_focus_rings():
     with pytest.raises(ValueError, match="focus_rings"):
         RelaxOptions(focus_rings=-1)
@@ -597,3 +627,45 @@ def test_row_labels_are_equal_exactly_where_the_rows_are(n_nodes):
     same_label = labels[:, None] == labels[None, :]
     same_row = np.all(keys[:, None, :] == keys[None, :, :], axis=2)
     np.testing.assert_array_equal(same_label, same_row)
+
+
+def test_rest_corner_geometry_in_chunks_is_measuring_every_corner_at_once(monkeypatch):
+    from kneegui.meshopt.foldover import edge_matrices
+
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(60, 3))
+    tets = np.array([rng.choice(60, 4, replace=False) for _ in range(500)])
+    tets[::7, 3] = tets[::7, 2]  # flat corners are left out
+    monkeypatch.setattr(relax_module, "CORNER_CHUNK", 37)  # chunks that split the flat ones
+    usable, inv, det = relax_module._rest_corner_geometry(x, tets)
+    e0 = edge_matrices(x, tets)
+    det_all = np.linalg.det(e0)
+    expected = np.abs(det_all) > 1e-12 * np.maximum(np.abs(e0).max(axis=(1, 2)) ** 3, 1e-300)
+    np.testing.assert_array_equal(usable, expected)
+    assert not usable[::7].any() and usable.sum() > 400
+    np.testing.assert_array_equal(inv, np.linalg.inv(e0[usable]))  # the same bits
+    np.testing.assert_array_equal(det, det_all[usable])
+
+
+def test_edge_adjacency_and_node_rows_are_the_sparse_products_they_replace():
+    import scipy.sparse as sp
+
+    from kneegui.reposition.relax import NodeRows, edge_adjacency
+
+    rng = np.random.default_rng(12)
+    n = 40
+    tets = np.array([rng.choice(n + 5, 4, replace=False) for _ in range(300)])  # >= n: virtual
+    tets[:, 0] = rng.integers(0, n, len(tets))  # a corner's base is a real node
+    tets = tets[np.array([len(set(t)) == 4 for t in tets])]
+    a, b = np.repeat(tets[:, 0], 3), tets[:, 1:].ravel()
+    real = b < n
+    adj = sp.csr_matrix((np.ones(int(real.sum())), (a[real], b[real])), shape=(n, n))
+    expected = ((adj + adj.T) > 0).astype(np.int8).toarray()
+    got = edge_adjacency(a, b, n)
+    assert got.dtype == np.int8
+    np.testing.assert_array_equal(got.toarray(), expected)
+
+    rows = NodeRows(tets, n)
+    for nodes in (np.arange(n), np.array([3, 17, 3]), np.array([], dtype=np.int64)):
+        touching = np.flatnonzero(np.isin(tets, nodes).any(axis=1))
+        np.testing.assert_array_equal(rows.touching(nodes), touching)
