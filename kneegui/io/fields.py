@@ -271,7 +271,7 @@ def format_fixed_width(values: NDArray[np.float64], width: int) -> NDArray[np.ui
     use_fixed = (a == 0) | ((dec_fixed >= 1) & (sig_fixed >= dec_exp + 1))
     dec = np.where(use_fixed, np.maximum(dec_fixed, 0), dec_exp)
     if np.any(~use_fixed & (dec_exp < 1)):
-        bad = v[~use_fixed & (dec_exp < 1)][0]
+        bad = float(v[~use_fixed & (dec_exp < 1)][0])
         raise FieldError(f"value {bad!r} does not fit a {width}-character field")
     for fixed in (True, False):
         kind = "f" if fixed else "e"

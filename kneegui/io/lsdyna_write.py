@@ -22,6 +22,9 @@ from kneegui.io.lsdyna_read import DeckFile, DeckSource
 from kneegui.io.output_plan import plan_writes
 from kneegui.model import Model
 
+#: Changed coordinate fields formatted at a time by :func:`write_deck`.
+WRITE_BLOCK = 1 << 16
+
 _SPACE = 32
 
 
@@ -60,9 +63,13 @@ def _patched_file(
             rows = sel[changed[sel, j]]
             if len(rows) == 0:
                 continue
-            text = _format(model, rows, j, w, src, fi)
             offs = start[sel_mask][changed[sel, j]] + col[sel_mask][changed[sel, j]] + j * w
-            buf[offs[:, None] + np.arange(w)[None, :]] = text
+            # a block of nodes at a time: formatting keeps a dozen temporaries per value, and
+            # the byte offsets are w per value (a whole-body deck has millions of nodes)
+            for lo in range(0, len(rows), WRITE_BLOCK):
+                block = slice(lo, lo + WRITE_BLOCK)
+                text = _format(model, rows[block], j, w, src, fi)
+                buf[offs[block, None] + np.arange(w)[None, :]] = text
     for k in np.flatnonzero(~in_place).tolist():
         node = int(nodes[k])
         s, e = int(start[k]), int(src.node_line_end[node])
@@ -93,14 +100,22 @@ def _format(model: Model, rows: NDArray, j: int, w: int, src: DeckSource, fi: in
     try:
         return format_fixed_width(model.coords[rows, j], w)
     except FieldError as exc:
+        # name the node whose value does not fit, not the first of the block
+        bad, message = rows[0], exc
+        for row in rows.tolist():
+            try:
+                format_fixed_width(model.coords[[row], j], w)
+            except FieldError as one:
+                bad, message = row, one
+                break
         f = src.files[fi]
-        line = f.line_number(int(src.node_line_start[rows[0]]))
-        raise DeckError(f"node {model.node_ids[rows[0]]}: {exc}", f.path, line) from None
+        line = f.line_number(int(src.node_line_start[bad]))
+        raise DeckError(f"node {model.node_ids[bad]}: {message}", f.path, line) from None
 
 
-def _apply_edits(data: bytearray, edits: list[tuple[int, int, bytes]]) -> bytes:
+def _apply_edits(data: bytearray, edits: list[tuple[int, int, bytes]]) -> bytes | bytearray:
     if not edits:
-        return bytes(data)
+        return data  # not copied: a whole-body deck is hundreds of MB
     out, pos = [], 0
     for s, e, new in sorted(edits, key=lambda t: t[0]):
         out.append(bytes(data[pos:s]))
@@ -184,10 +199,10 @@ def write_deck(
     rendered: dict[int, tuple[bytearray, list]] = {
         fi: _patched_file(fi, model, src, changed) for fi in range(len(src.files))
     }
-    outputs: dict[Path, bytes] = {}
+    outputs: dict[Path, bytes | bytearray] = {}
     if flatten:
 
-        def render(fi: int, stack: tuple[int, ...]) -> bytes:
+        def render(fi: int, stack: tuple[int, ...]) -> bytes | bytearray:
             data, edits = rendered[fi]
             f = src.files[fi]
             all_edits = list(edits)

@@ -433,3 +433,28 @@ def test_unknown_keywords_kept_verbatim(tmp_path):
     )
     changed = [d for d in diff if d.startswith(("+", "-")) and not d.startswith(("+++", "---"))]
     assert len(changed) == 16  # 8 node lines out, 8 in
+
+
+def test_coordinates_formatted_in_blocks_give_the_same_bytes(tmp_path, monkeypatch):
+    import kneegui.io.lsdyna_write as writer
+
+    deck = write(tmp_path, "cube.k", HEX_DECK)
+    model = read_deck(deck)
+    moved = model.with_coords(model.coords * 1.7 + 0.123456789)
+    whole = write_deck(moved, tmp_path / "whole" / "cube.k")[0].read_bytes()
+    monkeypatch.setattr(writer, "WRITE_BLOCK", 3)  # 8 nodes: blocks of 3, 3 and 2
+    blocks = write_deck(moved, tmp_path / "blocks" / "cube.k")[0].read_bytes()
+    assert blocks == whole and blocks != deck.read_bytes()
+
+
+def test_a_value_that_does_not_fit_names_its_own_node(tmp_path):
+    from kneegui.errors import DeckError
+    from kneegui.io.lsdyna_write import _format
+
+    model = read_deck(write(tmp_path, "cube.k", HEX_DECK))
+    coords = model.coords.copy()
+    coords[:3, 0] = [0.5, 0.25, 1e300]  # the third does not fit 4 characters
+    with pytest.raises(DeckError, match=r"node 3\b") as err:
+        _format(model.with_coords(coords), np.arange(3), 0, 4, model.source, 0)
+    assert "cube.k:11:" in str(err.value)  # node 3's line in the deck
+    assert "value 1e+300 does not fit" in str(err.value)
