@@ -276,6 +276,10 @@ def quad_barrier(
     return total, grad, np.concatenate(ratios)
 
 
+#: Corners whose preconditioner terms :class:`FoldoverEnergy` works out at a time.
+_DIAGONAL_BLOCK = 1 << 16
+
+
 class FoldoverEnergy:
     """The foldover-free energy of the corner tetrahedra touching a set of free nodes, in local
     numbering: the real nodes they use (and the virtual nodes need) first, then the virtual
@@ -285,10 +289,10 @@ class FoldoverEnergy:
     ----------
     tets : (C, 4) ndarray of int
         The corner tetrahedra (global numbering; ``n_nodes + k`` is virtual node ``k``).
-    inv_rest : (C, 3, 3) ndarray
-        Inverse of each corner's rest edge matrix (``J = E @ G``).
-    weight : (C,) ndarray
-        Each corner's weight.
+    inv_rest : (R, 3, 3) ndarray
+        Inverse rest edge matrices (``J = E @ G``): corner ``c``'s is ``inv_rest[rows[c]]``.
+    weight : (R,) ndarray
+        Weights: corner ``c``'s is ``weight[rows[c]]``.
     virtual : (V, N) sparse matrix
         The virtual nodes as combinations of the real ones.
     quads : (Q, 4) ndarray of int
@@ -299,6 +303,10 @@ class FoldoverEnergy:
         The free nodes (global numbering).
     volume_weight, shell_weight : float
         ``theta`` and the shells' barrier weight (:class:`RelaxOptions`).
+    rows : (C,) ndarray of int, optional
+        Each corner's row of ``inv_rest`` and ``weight`` (default: ``c``). The relaxation
+        passes its own arrays and the rows of the region's corners: a whole-body region has
+        millions of corners, and each round's energy would otherwise copy 80 bytes of each.
     """
 
     def __init__(
@@ -312,6 +320,7 @@ class FoldoverEnergy:
         free: NDArray[np.int64],
         volume_weight: float,
         shell_weight: float,
+        rows: NDArray[np.int64] | None = None,
     ):
         n = virtual.shape[1]
         is_virtual = tets >= n
@@ -328,28 +337,37 @@ class FoldoverEnergy:
         )
         self.virtual = v_sub[:, self.nodes].tocsr() if len(used_virtual) else None
         self.virtual_t = None if self.virtual is None else self.virtual.T.tocsr()
-        local = np.empty_like(tets)
+        local = np.empty(tets.shape, dtype=np.int32 if m + len(used_virtual) < 2**31 else np.int64)
         local[~is_virtual] = np.searchsorted(self.nodes, tets[~is_virtual])
         local[is_virtual] = m + np.searchsorted(used_virtual, tets[is_virtual] - n)
         self.tets = local
         self.m = m
-        self.g_rows = np.ascontiguousarray(inv_rest)  # (C, 3, 3), J = E @ G
-        self.weight = weight
+        self.inv_rest = np.ascontiguousarray(inv_rest, dtype=np.float64)  # shared, not copied
+        self.weights = np.ascontiguousarray(weight, dtype=np.float64)
+        index = np.int32 if len(self.inv_rest) < 2**31 else np.int64  # half the bytes to read
+        self.rows = (
+            np.arange(len(tets), dtype=index)
+            if rows is None
+            else np.ascontiguousarray(rows, dtype=index)
+        )
         self.theta = volume_weight
         self.free = np.searchsorted(self.nodes, free)  # local indices of the free nodes
         self._size = m + len(used_virtual)
-        # diagonal of the shape term's Hessian at rest, per node: a preconditioner
-        # (summed term by term from g_rows, in the order of the edge-major sums: no (3, 3, C)
+        # diagonal of the shape term's Hessian at rest, per node: a preconditioner (summed
+        # term by term, in the order of the edge-major sums, a block of corners at a time: no
         # copy of every corner's matrix)
-        size, g = self._size, self.g_rows
+        size, c = self._size, len(self.tets)
+        end_sq, base_sq = np.empty((3, c)), np.empty(c)
+        for lo in range(0, c, _DIAGONAL_BLOCK):
+            g = self.inv_rest[self.rows[lo : lo + _DIAGONAL_BLOCK]]
+            end_sq[:, lo : lo + len(g)] = (g[:, :, 0] ** 2 + g[:, :, 1] ** 2 + g[:, :, 2] ** 2).T
+            col = g[:, 0] + g[:, 1] + g[:, 2]  # the three edges' rows summed
+            base_sq[lo : lo + len(g)] = col[:, 0] ** 2 + col[:, 1] ** 2 + col[:, 2] ** 2
         ends = self.tets[:, 1:].T.ravel()  # edge j of corner c at j * C + c
-        end_sq = (g[:, :, 0] ** 2 + g[:, :, 1] ** 2 + g[:, :, 2] ** 2).T
-        col = g[:, 0] + g[:, 1] + g[:, 2]  # (C, 3): the three edges' rows summed
-        base_sq = col[:, 0] ** 2 + col[:, 1] ** 2 + col[:, 2] ** 2
-        del col
+        weight = self.weight
         diag = np.zeros(size)
-        np.add.at(diag, ends, np.tile(self.weight, 3) * end_sq.ravel())
-        np.add.at(diag, self.tets[:, 0], self.weight * base_sq)
+        np.add.at(diag, ends, np.tile(weight, 3) * end_sq.ravel())
+        np.add.at(diag, self.tets[:, 0], weight * base_sq)
         if self.virtual_t is not None:
             diag = diag[:m] + self.virtual_t.multiply(self.virtual_t) @ diag[m:]
         self.diagonal = diag[:m]
@@ -357,9 +375,20 @@ class FoldoverEnergy:
         self._cut = part_bounds(len(self.tets))
 
     @property
+    def g_rows(self) -> NDArray[np.float64]:
+        """(C, 3, 3) each corner's inverse rest edge matrix (a copy, for the NumPy reference
+        and the tests; the compiled kernel reads the shared rows)."""
+        return self.inv_rest[self.rows]
+
+    @property
+    def weight(self) -> NDArray[np.float64]:
+        """(C,) each corner's weight (a copy)."""
+        return self.weights[self.rows]
+
+    @property
     def g(self) -> NDArray[np.float64]:
         """(3 edges, 3, C) the inverse rest edge matrices, edge-major (the NumPy reference's
-        layout); made when asked for, since the compiled kernel reads :attr:`g_rows` and a
+        layout); made when asked for, since the compiled kernel reads the shared rows and a
         whole-body model's region has millions of corners."""
         return np.ascontiguousarray(np.transpose(self.g_rows, (1, 2, 0)))
 
@@ -386,7 +415,7 @@ class FoldoverEnergy:
         det = np.empty(len(self.tets))
         if len(self.tets) < PARALLEL_MIN_ELEMENTS:
             energy = foldover_free_energy(
-                xa, self.tets, self.g_rows, self.weight, self.theta, eps, grad, det
+                xa, self.tets, self.inv_rest, self.weights, self.rows, self.theta, eps, grad, det
             )
         else:
             energy = self._energy_in_parts(xa, eps, grad, det)
@@ -410,8 +439,9 @@ class FoldoverEnergy:
             foldover_energy_in_parts(
                 xa,
                 self.tets,
-                self.g_rows,
-                self.weight,
+                self.inv_rest,
+                self.weights,
+                self.rows,
                 self.theta,
                 eps,
                 self._cut,

@@ -31,12 +31,15 @@ def _regularised(det, eps):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def foldover_free_energy(xa, tets, g, w, theta, eps, grad, det_out):  # pragma: no cover - compiled
+def foldover_free_energy(
+    xa, tets, g, w, rows, theta, eps, grad, det_out
+):  # pragma: no cover - compiled
     """Energy of Garanzha et al. (2021) summed over corners; fills ``grad`` (S, 3) and
     ``det_out`` (C,).
 
-    ``xa`` (S, 3) coordinates, ``tets`` (C, 4) local node indices (corner first), ``g`` (C, 3, 3)
-    inverse rest edge matrices (J = E @ G), ``w`` (C,) weights.
+    ``xa`` (S, 3) coordinates, ``tets`` (C, 4) local node indices (corner first); corner ``c``'s
+    inverse rest edge matrix (J = E @ G) is ``g[rows[c]]`` and its weight ``w[rows[c]]``: the
+    rows of arrays shared with the whole relaxation, which a region's energy does not copy.
     """
     grad[:, :] = 0.0
     total = 0.0
@@ -58,15 +61,16 @@ def foldover_free_energy(xa, tets, g, w, theta, eps, grad, det_out):  # pragma: 
         e02 = xa[a3, 0] - x0
         e12 = xa[a3, 1] - y0
         e22 = xa[a3, 2] - z0
-        g00 = g[c, 0, 0]
-        g01 = g[c, 0, 1]
-        g02 = g[c, 0, 2]
-        g10 = g[c, 1, 0]
-        g11 = g[c, 1, 1]
-        g12 = g[c, 1, 2]
-        g20 = g[c, 2, 0]
-        g21 = g[c, 2, 1]
-        g22 = g[c, 2, 2]
+        r = rows[c]
+        g00 = g[r, 0, 0]
+        g01 = g[r, 0, 1]
+        g02 = g[r, 0, 2]
+        g10 = g[r, 1, 0]
+        g11 = g[r, 1, 1]
+        g12 = g[r, 1, 2]
+        g20 = g[r, 2, 0]
+        g21 = g[r, 2, 1]
+        g22 = g[r, 2, 2]
         # J = E @ G
         j00 = e00 * g00 + e01 * g10 + e02 * g20
         j01 = e00 * g01 + e01 * g11 + e02 * g21
@@ -104,7 +108,7 @@ def foldover_free_energy(xa, tets, g, w, theta, eps, grad, det_out):  # pragma: 
         chi23 = chi ** (2.0 / 3.0)
         shape = frob / chi23
         volume = (det * det + 1.0) / chi
-        wc = w[c]
+        wc = w[r]
         total += wc * ((1.0 - theta) * shape + theta * volume)
         d_cof = wc * (
             (1.0 - theta) * (-2.0 / 3.0) * shape * dchi / chi
@@ -147,7 +151,7 @@ def foldover_free_energy(xa, tets, g, w, theta, eps, grad, det_out):  # pragma: 
 
 @njit(cache=True, nogil=True, parallel=True)
 def foldover_energy_in_parts(
-    xa, tets, g, w, theta, eps, cut, buffers, det, totals
+    xa, tets, g, w, rows, theta, eps, cut, buffers, det, totals
 ):  # pragma: no cover - compiled
     """:func:`foldover_free_energy` over the fixed parts ``cut`` (:mod:`kneegui.meshopt.parallel`)
     in parallel: part ``k`` fills ``buffers[k]`` (S, 3) with its gradient and ``totals[k]`` with
@@ -156,7 +160,7 @@ def foldover_energy_in_parts(
         a = cut[k]
         b = cut[k + 1]
         totals[k] = foldover_free_energy(
-            xa, tets[a:b], g[a:b], w[a:b], theta, eps, buffers[k], det[a:b]
+            xa, tets[a:b], g, w, rows[a:b], theta, eps, buffers[k], det[a:b]
         )
 
 

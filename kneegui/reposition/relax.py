@@ -680,14 +680,15 @@ class ElasticRelaxation:
         rows = self._node_rows.touching(free)
         return FoldoverEnergy(
             self.tets[rows],
-            self.inv_rest[rows],
-            self.weight[rows],
+            self.inv_rest,
+            self.weight,
             self.virtual,
             self.quads[self.is_free_quad(free)],
             self.rest,
             free,
             self.options.volume_weight,
             self.options.shell_weight,
+            rows=rows,
         )
 
     def region(self, transforms: Mapping[str, RigidTransform] | None = None) -> RelaxedRegion:

@@ -110,8 +110,9 @@ def test_energy_in_parts_is_the_same_on_one_thread_and_matches_one_pass(block_mo
             foldover_free_energy(
                 xa,
                 sub.tets[a:b],
-                sub.g_rows[a:b],
-                sub.weight[a:b],
+                sub.inv_rest,
+                sub.weights,
+                sub.rows[a:b],
                 sub.theta,
                 1e-3,
                 buffers[k],
@@ -123,7 +124,7 @@ def test_energy_in_parts_is_the_same_on_one_thread_and_matches_one_pass(block_mo
     np.testing.assert_array_equal(d_parts, d_many)
     g_serial, d_serial = np.empty_like(xa), np.empty(len(sub.tets))
     e_serial = foldover_free_energy(
-        xa, sub.tets, sub.g_rows, sub.weight, sub.theta, 1e-3, g_serial, d_serial
+        xa, sub.tets, sub.inv_rest, sub.weights, sub.rows, sub.theta, 1e-3, g_serial, d_serial
     )
     assert e_many == pytest.approx(e_serial, rel=1e-12)
     np.testing.assert_array_equal(d_many[: len(d_serial)], d_serial)

@@ -669,3 +669,40 @@ def test_edge_adjacency_and_node_rows_are_the_sparse_products_they_replace():
     for nodes in (np.arange(n), np.array([3, 17, 3]), np.array([], dtype=np.int64)):
         touching = np.flatnonzero(np.isin(tets, nodes).any(axis=1))
         np.testing.assert_array_equal(rows.touching(nodes), touching)
+
+
+def test_a_region_energy_reads_the_relaxations_rest_matrices_without_copying_them():
+    """The energy of a region holds the rows of its corners, not copies of their inverse rest
+    matrices and weights (80 bytes a corner, millions of corners over a whole-body region),
+    and gives the same bits as an energy over copies."""
+    from kneegui.meshopt.foldover import FoldoverEnergy
+
+    coords, blocks, boundary, node = hex_block(6)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    relax = relaxation(coords, blocks, free)
+    nodes = free[: len(free) // 3]
+    sub = relax.energy(nodes)
+    assert np.shares_memory(sub.inv_rest, relax.inv_rest)
+    assert np.shares_memory(sub.weights, relax.weight)
+    assert sub.rows.dtype == np.int32 and len(sub.rows) < len(relax.tets)
+    rows = relax._node_rows.touching(nodes)
+    copied = FoldoverEnergy(
+        relax.tets[rows],
+        relax.inv_rest[rows],
+        relax.weight[rows],
+        relax.virtual,
+        relax.quads[relax.is_free_quad(nodes)],
+        relax.rest,
+        nodes,
+        relax.options.volume_weight,
+        relax.options.shell_weight,
+    )
+    tangled = coords.copy()
+    tangled[node(2, 3, 3)] += [14.0, -3.0, 2.0]
+    for eps in (1e-3, 0.5):
+        e_shared, g_shared, d_shared = sub.energy(tangled[sub.nodes], eps)
+        e_copied, g_copied, d_copied = copied.energy(tangled[copied.nodes], eps)
+        assert e_shared == e_copied and np.min(d_shared) < 0
+        np.testing.assert_array_equal(g_shared, g_copied)
+        np.testing.assert_array_equal(d_shared, d_copied)
+    np.testing.assert_array_equal(sub.diagonal, copied.diagonal)
