@@ -1008,13 +1008,17 @@ class ElasticRelaxation:
             if etype not in CORNER_TRIPLES:
                 continue
             conn = block.conn[self.is_free[block.conn].any(axis=1)]
-            p = x[conn]
-            normal = None
-            if etype == "quad4":
-                normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
-            bad = (corner_determinants(p, etype, normal) <= 0).any(axis=1)
-            if bad.any():
-                held.append(conn[bad].ravel())
+            # a block of elements at a time: the corner geometry is a dozen (E, corners)
+            # temporaries, 0.5 GB around the 1M demo's region at once
+            for lo in range(0, len(conn), CORNER_CHUNK):
+                part = conn[lo : lo + CORNER_CHUNK]
+                p = x[part]
+                normal = None
+                if etype == "quad4":
+                    normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+                bad = (corner_determinants(p, etype, normal) <= 0).any(axis=1)
+                if bad.any():
+                    held.append(part[bad].ravel())
         return sorted_unique(np.concatenate(held)) if held else np.zeros(0, dtype=np.int64)
 
     @staticmethod

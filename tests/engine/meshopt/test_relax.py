@@ -706,3 +706,17 @@ def test_a_region_energy_reads_the_relaxations_rest_matrices_without_copying_the
         np.testing.assert_array_equal(g_shared, g_copied)
         np.testing.assert_array_equal(d_shared, d_copied)
     np.testing.assert_array_equal(sub.diagonal, copied.diagonal)
+
+
+def test_inverted_element_nodes_in_blocks_are_those_of_one_block(monkeypatch):
+    coords, blocks, boundary, node = hex_block(5)
+    free = np.setdiff1d(np.arange(len(coords)), boundary)
+    relax = relaxation(coords, blocks, free)
+    relax.blocks = blocks  # (the helper builds it without, as the unit tests' energy needs)
+    tangled = coords.copy()
+    tangled[node(1, 1, 1)] += [14.0, 0.0, 0.0]
+    tangled[node(3, 3, 5)] += [0.0, 0.0, -14.0]  # a skin node through the flesh under it
+    whole = relax.inverted_element_nodes(tangled)
+    monkeypatch.setattr(relax_module, "CORNER_CHUNK", 7)
+    assert len(whole) > 8
+    np.testing.assert_array_equal(relax.inverted_element_nodes(tangled), whole)
