@@ -287,8 +287,18 @@ def test_colouring_separates_nodes_that_share_an_element(block_model):
     nb = _build_neighbourhood(model.blocks, movable, model.n_nodes)
     compressed = np.full(model.n_nodes, -1)
     compressed[movable] = np.arange(len(movable))
-    groups, _, _ = _colour(nb, compressed, len(movable))
+    groups, ptr, nbrs = _colour(nb, compressed, len(movable))
     assert sorted(np.concatenate(groups).tolist()) == list(range(len(movable)))
+    # the conflict graph: every ordered pair of movable nodes sharing an element, once
+    expected = {
+        (int(compressed[u]), int(compressed[v]))
+        for row in model.blocks["hex8"].conn
+        for u in row
+        for v in row
+        if u != v and compressed[u] >= 0 and compressed[v] >= 0
+    }
+    got = [(a, int(b)) for a in range(len(movable)) for b in nbrs[ptr[a] : ptr[a + 1]]]
+    assert got == sorted(expected)
     colour = np.empty(model.n_nodes, dtype=int)
     colour[:] = -1
     for k, g in enumerate(groups):
