@@ -342,7 +342,9 @@ class FoldoverEnergy:
         local[is_virtual] = m + np.searchsorted(used_virtual, tets[is_virtual] - n)
         self.tets = local
         self.m = m
-        self.inv_rest = np.ascontiguousarray(inv_rest, dtype=np.float64)  # shared, not copied
+        # the shared (R, ...) arrays, not copied; corner c's rows of them: self.rows[c] (the
+        # per-corner copies are the properties g_rows and weight)
+        self.inv_rest = np.ascontiguousarray(inv_rest, dtype=np.float64)
         self.weights = np.ascontiguousarray(weight, dtype=np.float64)
         index = np.int32 if len(self.inv_rest) < 2**31 else np.int64  # half the bytes to read
         self.rows = (
