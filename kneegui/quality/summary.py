@@ -117,17 +117,32 @@ def _aligned_initial(flat: _Flat, initial: _Flat) -> _Flat:
     return initial
 
 
+@dataclass(frozen=True)
+class _Limits:
+    """Each element's warn and fail limits: its part's role (``code``, 0 for none) picks them
+    from a table per metric."""
+
+    code: NDArray[np.int32]
+    tables: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]
+
+    def of(self, metric: str, rows: NDArray[np.int64]) -> tuple[NDArray, NDArray]:
+        """The warn and fail limits of the elements at ``rows`` for ``metric``."""
+        warn, fail = self.tables[metric]
+        at = self.code[rows]
+        return warn[at], fail[at]
+
+
 def _group(
     flat: _Flat,
     mask: NDArray[np.int64],
-    limits: dict[str, tuple[NDArray, NDArray]],
+    limits: _Limits,
     thresholds: Thresholds,
     initial: _Flat | None,
 ) -> dict:
     """Statistics of the elements at positions ``mask`` (an index array) of the flat arrays."""
     out: dict = {"elements": len(mask), "inverted": int(np.count_nonzero(flat.inverted[mask]))}
     directions = thresholds.for_role(None)
-    for m in limits:
+    for m in limits.tables:
         rows = mask[flat.has[m][mask]] if m in flat.has else mask  # tet measures: tets only
         v = flat.values[m][rows]
         t = directions[m]
@@ -135,7 +150,7 @@ def _group(
             out[m] = {"worst": None, "mean": None, "std": None, "warn": 0, "fail": 0}
             continue
         finite = v[np.isfinite(v)]
-        warn_lim, fail_lim = limits[m][0][rows], limits[m][1][rows]
+        warn_lim, fail_lim = limits.of(m, rows)
         entry = {
             "worst": t.worst(v),
             "mean": float(finite.mean()) if len(finite) else None,
@@ -201,17 +216,20 @@ def summarize_quality(
     for role, pids in roles.items():
         for p in pids:
             part_role.setdefault(p, role)
-    limits: dict[str, tuple[NDArray, NDArray]] = {}
+    # (a role code per element and a small table per metric, not two arrays over every element
+    # per metric: a whole-body model has millions of elements)
+    role_names = sorted(set(part_role.values()))
+    code = np.zeros(len(flat.part_ids), dtype=np.int32)  # 0: the default thresholds
+    for k, role in enumerate(role_names, start=1):
+        code[np.isin(flat.part_ids, [p for p, r in part_role.items() if r == role])] = k
+    tables = {}
     for m in metrics:
-        d = thresholds.default[m]
-        warn = np.full(len(flat.part_ids), d.warn)
-        fail = np.full(len(flat.part_ids), d.fail)
-        for role in set(part_role.values()):
-            t = thresholds.for_role(role)[m]
-            if (t.warn, t.fail) != (d.warn, d.fail):
-                in_role = np.isin(flat.part_ids, [p for p, r in part_role.items() if r == role])
-                warn[in_role], fail[in_role] = t.warn, t.fail
-        limits[m] = (warn, fail)
+        levels = [thresholds.default[m]] + [thresholds.for_role(r)[m] for r in role_names]
+        tables[m] = (
+            np.array([t.warn for t in levels], dtype=np.float64),
+            np.array([t.fail for t in levels], dtype=np.float64),
+        )
+    limits = _Limits(code, tables)
     everything = np.arange(len(flat.part_ids))
     summary: dict = {
         "metrics": metrics,

@@ -68,6 +68,16 @@ def test_role_override_changes_only_that_roles_counts(block_model):
     assert s1["roles"]["skin"]["aspect"] == s0["roles"]["skin"]["aspect"]
     assert s1["model"]["aspect"]["warn"] > s0["model"]["aspect"]["warn"]
     assert s1["thresholds"]["flesh"]["aspect"]["warn"] == 1.01
+    # each element judged by its own part's role: the counts by hand
+    flesh = np.isin(posed.blocks["hex8"].part_ids, ROLES["flesh"])
+    aspect = q["hex8"].aspect
+    assert s1["roles"]["flesh"]["aspect"]["warn"] == int(np.sum(aspect[flesh] > 1.01))
+    assert s1["roles"]["flesh"]["aspect"]["fail"] == int(np.sum(aspect[flesh] > 1.05))
+    default = base.default["aspect"]
+    others = s1["model"]["aspect"]["warn"] - s1["roles"]["flesh"]["aspect"]["warn"]
+    assert others == int(np.sum(aspect[~flesh] > default.warn)) + sum(
+        int(np.sum(q[t].aspect > default.warn)) for t in q if t != "hex8"
+    )
 
 
 def test_volume_change_against_initial(block_model):
