@@ -48,6 +48,7 @@ from kneegui.meshopt.foldover import (
     penalised_objective,
 )
 from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.nodes import unique_pairs
 from kneegui.meshopt.quality_optimiser import (
     SOLID_CORNER_TYPES,
     QualityAims,
@@ -237,19 +238,18 @@ def _rest_corner_geometry(
 
 def edge_adjacency(a: NDArray[np.int64], b: NDArray[np.int64], n: int) -> sp.csr_matrix:
     """(n, n) int8 adjacency (1 where two nodes share an edge ``a[i]``-``b[i]``, both ways) of
-    the edges whose ends are both below ``n``; built from packed edge keys, without the
-    float64 triplets of a sparse sum."""
+    the edges whose ends are both below ``n``; from the unique node pairs
+    (:func:`~kneegui.meshopt.nodes.unique_pairs`, one way first: the corners repeat each edge
+    many times), without the float64 triplets of a sparse sum."""
     real = (a < n) & (b < n)
-    a, b = a[real].astype(np.int64), b[real].astype(np.int64)
-    one_way = sorted_unique(a * n + b)
-    keys = sorted_unique(np.concatenate([one_way, (one_way % n) * n + one_way // n]))
+    one_way = unique_pairs(a[real], b[real], n)
+    pairs = unique_pairs(one_way.ravel(), one_way[:, ::-1].ravel(), n)
     del one_way
-    rows = keys // n
-    index = np.int32 if max(n, len(keys)) < 2**31 else np.int64
+    index = np.int32 if max(n, len(pairs)) < 2**31 else np.int64
     indptr = np.zeros(n + 1, dtype=index)
-    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+    np.cumsum(np.bincount(pairs[:, 0], minlength=n), out=indptr[1:])
     return sp.csr_matrix(
-        (np.ones(len(keys), dtype=np.int8), (keys % n).astype(index), indptr), shape=(n, n)
+        (np.ones(len(pairs), dtype=np.int8), pairs[:, 1].astype(index), indptr), shape=(n, n)
     )
 
 
