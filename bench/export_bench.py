@@ -51,10 +51,24 @@ w, c = clock()
 rep = Repositioner(model, setup)
 pre = {"wall_s": time.perf_counter() - w, "cpu_s": time.process_time() - c,
        "breakdown_s": dict(rep.timings_s)}
+# how long a cancel would wait: the longest time between two of the export's cancel checks
+# (from its start to the first and from the last to its end included)
+longest, last = 0.0, 0.0
+
+def cancel():
+    global longest, last
+    now = time.perf_counter()
+    longest, last = max(longest, now - last), now
+    return False
+
 with tempfile.TemporaryDirectory() as tmp:
     w, c = clock()
-    posed = export_pose(rep, angle, os.path.join(tmp, "posed.k"), model_path=deck, force=True)
+    last = w
+    posed = export_pose(
+        rep, angle, os.path.join(tmp, "posed.k"), model_path=deck, force=True, cancel=cancel
+    )
     wall, cpu = time.perf_counter() - w, time.process_time() - c
+    longest = max(longest, time.perf_counter() - last)
 r = posed.report
 t = r["timings_s"]
 relax = r["relaxation"] or {}
@@ -92,6 +106,7 @@ print(json.dumps({
     "worst_jacobian": final["jacobian"]["worst"], "inverted": final["inverted"],
     "tissue_in_bones": {k: r["tissue_in_bones"][k] for k in ("nodes", "deepest", "tolerance")},
     "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    "cancel_gap_s": longest,
 }))
 """
 
@@ -220,6 +235,10 @@ def markdown(results: dict[str, Any]) -> list[str]:
         [_in_bones(r) for r in runs],
     )
     row("peak memory (process)", [f"{r['peak_rss_mb']:,.0f} MB" for r in runs])
+    row(
+        "longest wait for a cancel (time between two cancel checks)",
+        [_s(r["cancel_gap_s"]) if "cancel_gap_s" in r else "not recorded" for r in runs],
+    )
     lines += [
         "",
         "Where the export's time goes (the stage taking most of it, and the share of the "

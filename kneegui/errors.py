@@ -6,6 +6,7 @@ print one line ``file:line: message`` and the GUI can show it in a dialog.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -73,6 +74,12 @@ class QualityGateError(KneeguiError):
 
 class Cancelled(KneeguiError):
     """A long operation was cancelled through its callback."""
+
+
+def raise_if_cancelled(cancel: Callable[[], bool] | None, message: str) -> None:
+    """Raise :class:`Cancelled` with ``message`` when ``cancel`` is given and returns True."""
+    if cancel is not None and cancel():
+        raise Cancelled(message)
 
 
 class PlanError(KneeguiError):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -9,6 +10,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
+from kneegui.errors import Cancelled
 from kneegui.meshopt.parallel import PARALLEL_KERNEL_LOCK
 
 
@@ -154,12 +156,57 @@ def _two_loop(g, s_mem, y_mem, rho, order):  # pragma: no cover - compiled
     return q
 
 
+#: Least time between two progress reports from inside a solver round (seconds): a window
+#: redraws its progress bar on each report, and a round at paper scale runs about a thousand
+#: iterations a second.
+PROGRESS_INTERVAL_S = 0.25
+
+
+def round_monitor(
+    cancel: Callable[[], bool],
+    progress: Callable[[float, str], None],
+    fraction: Callable[[float], float],
+    message: str,
+    cancelled: str,
+) -> Callable[[int, int], None]:
+    """An ``each_iteration`` hook for :func:`minimize_lbfgs`: stop and report within a round.
+
+    A round on a whole-body model's region runs for tens of seconds; checked only between
+    rounds, a cancel waited that long (the 1M demo: up to ... s).
+
+    Parameters
+    ----------
+    cancel : callable
+        ``cancel()`` returning True raises :class:`kneegui.errors.Cancelled` with the message
+        ``cancelled``; asked after every iteration.
+    progress : callable
+        ``progress(fraction, message)``, called at most every :data:`PROGRESS_INTERVAL_S`.
+    fraction : callable
+        The overall fraction done, given the fraction of this round's iterations done.
+    message, cancelled : str
+        The progress message, and the message of the :class:`Cancelled` raised.
+    """
+    last = time.perf_counter()
+
+    def each_iteration(done: int, limit: int) -> None:
+        nonlocal last
+        if cancel():
+            raise Cancelled(cancelled)
+        now = time.perf_counter()
+        if now - last >= PROGRESS_INTERVAL_S:
+            last = now
+            progress(fraction(done / limit), message)
+
+    return each_iteration
+
+
 def minimize_lbfgs(
     fun: Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64]]],
     x0: NDArray[np.float64],
     max_iterations: int,
     memory: int = 10,
     ftol: float = 2.2e-9,
+    each_iteration: Callable[[int, int], None] | None = None,
 ) -> _MinimizeResult:
     """Unconstrained L-BFGS (Nocedal & Wright, algorithm 7.4/7.5) with Armijo backtracking.
 
@@ -177,6 +224,10 @@ def minimize_lbfgs(
         Number of correction pairs kept.
     ftol : float
         Stops when ``(f_k - f_{k+1}) / max(|f_k|, |f_{k+1}|, 1) <= ftol``.
+    each_iteration : callable, optional
+        ``each_iteration(done, max_iterations)`` after every iteration; it may raise (e.g.
+        :class:`kneegui.errors.Cancelled`, :func:`round_monitor`) and cannot change the
+        iterates.
     """
     x = np.array(x0, dtype=np.float64, copy=True)
     f, g = fun(x)
@@ -215,6 +266,8 @@ def minimize_lbfgs(
             order.append(slot)
         converged = (f - f_new) <= ftol * max(abs(f), abs(f_new), 1.0)
         x, f, g = x_new, f_new, g_new
+        if each_iteration is not None:
+            each_iteration(it, max_iterations)
         if converged:
             break
     return _MinimizeResult(x, f, it, nfev)

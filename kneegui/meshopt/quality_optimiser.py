@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled
-from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.lbfgs import minimize_lbfgs, round_monitor
 from kneegui.meshopt.parallel import (
     PARALLEL_KERNEL_LOCK,
     PARALLEL_MIN_ELEMENTS,
@@ -1323,7 +1323,14 @@ def optimise_quality(
         objective.floors = floors
         v0 = (x[current.pr.free] / current.h).ravel()
         before = objective(v0)[0]
-        result = minimize_lbfgs(objective, v0, opt.iterations_per_round)
+        monitor = round_monitor(
+            should_cancel,
+            report_progress,
+            lambda done: min(1.0, (rounds + done) / opt.rounds),
+            "optimising element quality",
+            "quality optimisation cancelled",
+        )
+        result = minimize_lbfgs(objective, v0, opt.iterations_per_round, each_iteration=monitor)
         x_all[current.pr.nodes[current.pr.free]] = result.x.reshape(-1, 3) * current.h
         rounds += 1
         iterations += int(result.nit)

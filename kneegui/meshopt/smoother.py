@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kneegui.errors import Cancelled, GeometryError
+from kneegui.errors import Cancelled, GeometryError, raise_if_cancelled
 from kneegui.meshopt.batched import build_problems, nelder_mead
 from kneegui.meshopt.nodes import boundary_node_normals, unique_pairs
 from kneegui.meshopt.smoother_kernel import QUAD_FACES, element_measures, greedy_colours
@@ -569,7 +569,9 @@ def smooth_mesh(
             t1 /= np.linalg.norm(t1)
             basis[int(node)] = np.stack([t1, np.cross(n, t1)], 1)  # (3, 2)
     movable = np.flatnonzero(free | sliding)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     nb = _build_neighbourhood(blocks, movable, n_nodes)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     n_mov = len(movable)
     all_handles = np.arange(nb.offset[-1])
     jac, scaled, aspect, warp = _evaluate(nb, coords, all_handles)
@@ -593,8 +595,10 @@ def smooth_mesh(
     # ------------------------------------------------------------------ stages 1 and 2
     compressed = np.full(n_nodes, -1, dtype=np.int64)
     compressed[movable] = np.arange(n_mov)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     if n_mov:
         colours, conflict_ptr, conflict_nbrs = _colour(nb, compressed, n_mov)
+        raise_if_cancelled(cancel, "smoothing cancelled")
     else:
         colours, conflict_ptr, conflict_nbrs = [], np.zeros(1, np.int64), np.zeros(0, np.int64)
     scale = 1.0

@@ -7,6 +7,7 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.errors import raise_if_cancelled
 from kneegui.meshopt.free_nodes import (
     degraded_elements,
     smoothing_free_nodes,
@@ -93,11 +94,13 @@ def smooth_posed_model(
     fixed = list(fixed_part_ids)
     if quality is None:
         quality = compute_quality(posed.coords, posed.blocks)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     initial_quality = (
         compute_quality(initial.coords, initial.blocks) if isinstance(initial, Model) else initial
     )
     degraded = degraded_elements(quality, initial_quality, threshold, tolerance)
     free = smoothing_free_nodes(posed, soft, fixed, degraded, opt.rings, opt.soft_interfaces)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     sliding = None
     if opt.slide_skin:
         sliding = smoothing_sliding_nodes(posed, soft, skin_part_ids, fixed, degraded, opt.rings)

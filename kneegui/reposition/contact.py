@@ -20,7 +20,7 @@ rest place relative to that bone (outside it at rest) and stops where that way l
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -31,6 +31,7 @@ from numba import njit
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from kneegui.errors import raise_if_cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.rigid_blend import DIRECT_SOLVE_MAX, block_cg
 from kneegui.topology import sorted_unique
@@ -364,6 +365,8 @@ class BoneContact:
         Depths (model units) between which the place a pushed node leaves the bone changes from
         the nearest surface point to the point where the segment from the node back to its rest
         place (in that bone's frame) leaves the bone. Default: always the nearest point.
+    cancel : callable, optional
+        Asked between the set-up's steps; True raises :class:`kneegui.errors.Cancelled`.
     """
 
     def __init__(
@@ -375,6 +378,7 @@ class BoneContact:
         reach: float,
         clearance: float,
         ray_depth: tuple[float, float] | None = None,
+        cancel: Callable[[], bool] | None = None,
     ):
         self.reach = reach
         self.ray_depth = ray_depth
@@ -390,6 +394,7 @@ class BoneContact:
         self.candidates = soft[near]
         self.surfaces: list[_Surface] = []
         for segment, distance, found in distances:
+            raise_if_cancelled(cancel, "bone contact set-up cancelled")
             # a candidate with no surface node of this bone within reach keeps no clearance from
             # it: measured only where one is (each point is measured on its own, so the values
             # are those of measuring every candidate)
@@ -400,6 +405,7 @@ class BoneContact:
             floor[rows] = np.where(close & (depth >= 0), np.minimum(depth, clearance), -np.inf)
             kept = np.flatnonzero(np.isfinite(floor))
             self.surfaces.append(_Surface(segment, distance, floor, kept))
+        raise_if_cancelled(cancel, "bone contact set-up cancelled")
         # Laplacian extension: candidates and non-soft nodes are held, the other soft nodes free
         free = soft[~near]
         n_all = len(coords)

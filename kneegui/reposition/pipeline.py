@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.errors import Cancelled
 from kneegui.geometry.axes import measure_flexion
 from kneegui.io.lsdyna import write_deck
 from kneegui.model import ElementBlock, Model
@@ -285,6 +286,15 @@ def pose_model(
         cancel=cancel,
     )
     relaxation, smoothing = improved.relaxation, improved.smoothing
+    should_cancel = cancel or (lambda: False)
+
+    def measuring(step: str) -> None:
+        # the report's measures take seconds on a whole-body model (the 1M demo: 4 s)
+        if should_cancel():
+            raise Cancelled(f"export cancelled while {step}")
+        report_progress(0.95, "measuring the pose")
+
+    measuring("measuring the flexion")
     achieved = measure_flexion(improved.relaxed, setup)
     # the mapping's stages (pose_bones, pose_blend, ...) and the relaxation's, as before
     if relaxation is not None:  # no key when nothing was relaxed (reports read it as absent)
@@ -295,6 +305,7 @@ def pose_model(
         )
     timings["pose"] = result.timings_s["total"] + timings.get("pose_relax", 0.0)
     posed = model.with_coords(improved.relaxed)
+    measuring("measuring the quality")
     t = time.perf_counter()
     posed_q = repositioner.quality_of(posed.coords)  # the smoothing measured it already
     timings["quality_posed"] = time.perf_counter() - t
@@ -308,17 +319,22 @@ def pose_model(
         final_q = requalify(posed_q, posed.coords, final.coords, final.blocks)
         timings["quality_smoothed"] = time.perf_counter() - t
         quality["smoothed"] = _stats(final, final_q)
+    measuring("summarising the quality")
     summary = summarize_quality(final, final_q, initial=initial_q)
+    measuring("running the pre-flight check")
     t = time.perf_counter()
     preflight = preflight_of(repositioner)  # run once per repositioner
     timings["preflight"] = time.perf_counter() - t
     inverted = preflight.split_inverted(final, final_q)
     reasons = split_gate_reasons(quality_gate(summary), inverted)
     reasons = name_worst_elements(reasons, summary, final, final_q, preflight)
+    measuring("measuring the bones' overlap")
     overlaps = repositioner.bone_overlap(result.bone_pose)
+    measuring("measuring the tissue in the bones")
     t = time.perf_counter()
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
+    measuring("writing the report")
     warnings = locked_inverted_warning(inverted, preflight) + pose_warnings(
         overlaps, in_bones, repositioner.length_scale
     )
@@ -426,6 +442,8 @@ def export_pose(
     report["model"] = str(Path(model_path).resolve())
     written = []
     if posed.passes_gate or force:
+        if cancel is not None and cancel():  # nothing written yet
+            raise Cancelled("export cancelled before writing the deck")
         report_progress(0.95, "writing the deck")
         t = time.perf_counter()
         written = write_deck(posed.model, out, flatten=flatten, overwrite=overwrite)

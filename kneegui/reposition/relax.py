@@ -36,7 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from kneegui.errors import Cancelled, GeometryError
+from kneegui.errors import Cancelled, GeometryError, raise_if_cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.meshopt.chain import ImprovementOptions, improve_region
 from kneegui.meshopt.foldover import (
@@ -47,7 +47,7 @@ from kneegui.meshopt.foldover import (
     next_eps,
     penalised_objective,
 )
-from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.lbfgs import minimize_lbfgs, round_monitor
 from kneegui.meshopt.nodes import unique_pairs
 from kneegui.meshopt.quality_optimiser import (
     SOLID_CORNER_TYPES,
@@ -398,6 +398,9 @@ class ElasticRelaxation:
     initial_quality : QualityResult, optional
         Quality of the rest model (every row of ``blocks``): what "worse than at rest" means
         for the ``beyond`` nodes.
+    cancel : callable, optional
+        Asked between the set-up's steps (seconds each on a whole-body model); True raises
+        :class:`kneegui.errors.Cancelled`.
     """
 
     def __init__(
@@ -420,7 +423,11 @@ class ElasticRelaxation:
         segment_of: NDArray[np.int64] | None = None,
         beyond: NDArray[np.int64] | None = None,
         initial_quality: QualityResult | None = None,
+        cancel: Callable[[], bool] | None = None,
     ) -> None:
+        def check() -> None:
+            raise_if_cancelled(cancel, "relaxation set-up cancelled")
+
         self.options = options or RelaxOptions()
         self.blocks = blocks
         self.aims = aims
@@ -444,7 +451,9 @@ class ElasticRelaxation:
             pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64))
             self.pinned_corners = int(pinned.sum())
             tets = tets[~pinned]
+        check()
         usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets)
+        check()
         self.tets = tets[usable]
         del tets
         self.weight = (
@@ -461,6 +470,7 @@ class ElasticRelaxation:
         self.n_nodes = n
         # node adjacency along the corner edges (real nodes), for growing the relaxed region
         self._adjacency = edge_adjacency(np.repeat(self.tets[:, 0], 3), self.tets[:, 1:].ravel(), n)
+        check()
         # corner rows by (real) node, to pick the corners touching a set of nodes
         self._node_rows = NodeRows(self.tets, n)
         self.bones = {
@@ -478,6 +488,7 @@ class ElasticRelaxation:
         self._rest_floor: dict[str, NDArray[np.float64]] = {}
         self._contact_memo: dict[str, DistanceMemo] = {}
         for name, surface in self.bones.items():
+            check()
             depth = surface.query(self.rest[self.contact_nodes])[0]
             self._rest_floor[name] = np.clip(depth, 0.0, self.options.contact_clearance)
             self._contact_memo[name] = DistanceMemo(surface, self.rest[self.contact_nodes], depth)
@@ -494,6 +505,7 @@ class ElasticRelaxation:
         # itself (a patella pressed into the trochlea): holding it out would tear the elements
         # between the attachment and the contact plane
         self._attached_nb: sp.csr_matrix | None = None
+        check()
         if attached is not None and len(attached):
             attached = sorted_unique(np.asarray(attached, dtype=np.int64))
             nb = self._adjacency[self.contact_nodes][:, attached].tocsr()
@@ -750,12 +762,14 @@ class ElasticRelaxation:
             return x, report, False
         use_contact = bool(self.bones) and transforms is not None
         penetrating, report.deepest_penetration = self._penetrating(x, transforms)
+        raise_if_cancelled(cancel, "relaxation cancelled")
         t = time.perf_counter()
         if self.contour_order is not None:
             crossing = self.contour_order.crossing(x)
             penetrating = crossing if penetrating is None else np.union1d(penetrating, crossing)
         free = self.degraded_region(x, penetrating)
         report.region_seconds = time.perf_counter() - t
+        raise_if_cancelled(cancel, "relaxation cancelled")
         report.free_nodes = len(free)
         d_min = np.inf  # nothing tangled
         if len(free):
@@ -788,6 +802,7 @@ class ElasticRelaxation:
         and the smallest corner det J."""
         opt = self.options
         whole = sub = self.energy(free)
+        raise_if_cancelled(should_cancel, "relaxation cancelled")
         x_start = x.copy()  # the pose: where a restart puts stuck nodes back
         _, _, det = sub.energy(x[sub.nodes], 1e-3)
         report.corners = len(sub.tets)
@@ -890,7 +905,16 @@ class ElasticRelaxation:
                 )
                 start = (xl[sub.free] / scale).ravel()
                 before = fun(start)[0]
-                result = minimize_lbfgs(fun, start, opt.iterations_per_round)
+                monitor = round_monitor(
+                    should_cancel,
+                    report_progress,
+                    lambda done, rnd=rnd: min(1.0, (rnd + done) / opt.max_rounds),
+                    "relaxing soft tissue",
+                    "relaxation cancelled",
+                )
+                result = minimize_lbfgs(
+                    fun, start, opt.iterations_per_round, each_iteration=monitor
+                )
                 xl[sub.free] = result.x.reshape(-1, 3) * scale
                 _, _, det = sub.energy(xl, eps)
                 report.rounds += 1

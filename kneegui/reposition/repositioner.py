@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.errors import Cancelled, SetupError
+from kneegui.errors import Cancelled, SetupError, raise_if_cancelled
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
 from kneegui.meshopt.chain import ImprovementOptions, ImprovementReport, improve_region
@@ -552,7 +552,7 @@ class Repositioner:
         self._quality_memo = (np.array(coords, copy=True), result)
         return result
 
-    def _elastic_relaxation(self) -> ElasticRelaxation:
+    def _elastic_relaxation(self, cancel: Callable[[], bool] | None = None) -> ElasticRelaxation:
         model, g = self.model, self.groups
         soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
         free = self._soft_near_joint()
@@ -572,7 +572,9 @@ class Repositioner:
         tets = np.concatenate([corner_tetrahedra(model.blocks, solids), face_tets])
         del face_tets
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
         initial = self.initial_quality()
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
         options = (self.options.improvement.relax or RelaxOptions()).scaled(self.length_scale)
         if options.slide_skin is None:
             options = replace(options, slide_skin=self.options.method == "blend")
@@ -603,6 +605,7 @@ class Repositioner:
             segment_of=self._segment_of(),
             beyond=g.soft,
             initial_quality=initial,
+            cancel=cancel,
         )
 
     def _segment_of(self) -> NDArray[np.int64]:
@@ -657,21 +660,24 @@ class Repositioner:
             self._near_soft = near
         return self._near_soft
 
-    def _bone_contact(self, reach: float) -> BoneContact:
+    def _bone_contact(self, reach: float, cancel: Callable[[], bool] | None = None) -> BoneContact:
         model, setup, g = self.model, self.setup, self.groups
         soft_parts = np.array(setup.parts_of(*SOFT_ROLES), dtype=np.int64)
         masks = {etype: np.isin(b.part_ids, soft_parts) for etype, b in model.blocks.items()}
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        edges = mesh_edges(model.blocks, masks)
+        raise_if_cancelled(cancel, "bone contact set-up cancelled")
         return BoneContact(
             model.coords,
             self._bone_surfaces(),
             g.soft,
-            mesh_edges(model.blocks, masks),
+            edges,
             reach=reach * size,
             clearance=self.options.contact_clearance * self.length_scale,
             ray_depth=None
             if self.options.push_ray_depth is None
             else tuple(k * size for k in self.options.push_ray_depth),
+            cancel=cancel,
         )
 
     # ---------------------------------------------------------------------- posing
@@ -850,10 +856,21 @@ class Repositioner:
         if not relax:
             options = replace(options, relax=None)
         relaxation = None
+        report_progress = progress or (lambda fraction, message: None)
+        should_cancel = cancel or (lambda: False)
+
+        def check(step: str) -> None:
+            # each step below takes seconds on a whole-body model (the 1M demo: 8.7 s to build
+            # the relaxation)
+            if should_cancel():
+                raise Cancelled(f"export cancelled before {step}")
+            report_progress(0.0, step)
+
         if options.relax is not None:
             if self.relaxation is None:  # built on first use
+                check("preparing the relaxation")
                 t = time.perf_counter()
-                self.relaxation = self._elastic_relaxation()
+                self.relaxation = self._elastic_relaxation(cancel)
                 self.timings_s["relaxation"] = time.perf_counter() - t
             relaxation = self.relaxation
             # the relaxation was built with the method's choice of slide_skin
@@ -863,11 +880,16 @@ class Repositioner:
                 # through the tissue behind it: the relaxation then starts from a pose outside
                 # the bones
                 if self._relax_contact is None:
+                    check("preparing the bone contact")
                     t = time.perf_counter()
-                    self._relax_contact = self._bone_contact(self.options.relax_contact_reach)
+                    self._relax_contact = self._bone_contact(
+                        self.options.relax_contact_reach, cancel
+                    )
                     self.timings_s["relaxation contact"] = time.perf_counter() - t
+                check("pushing tissue out of the bones")
                 coords = np.array(coords, dtype=np.float64, copy=True)
                 self._relax_contact.resolve(coords, bone.transforms)
+            check("finding the region to relax")
         region = RelaxedRegion(relaxation, bone.transforms, self._smoothing_stage(bone))
         return improve_region(coords, region, options, progress, cancel)
 
@@ -878,14 +900,18 @@ class Repositioner:
         movable, fixed = smoothing_parts(self.setup)
 
         def smooth(coords, options, progress, cancel):
+            raise_if_cancelled(cancel, "smoothing cancelled")
+            quality = self.quality_of(coords)
+            raise_if_cancelled(cancel, "smoothing cancelled")
+            guard = self.bone_depth_guard(coords, bone)
             smoothed, report = smooth_posed_model(
                 self.model.with_coords(coords),
                 movable,
                 fixed,
                 self.initial_quality(),
-                quality=self.quality_of(coords),
+                quality=quality,
                 options=options,
-                position_guard=self.bone_depth_guard(coords, bone),
+                position_guard=guard,
                 progress=progress,
                 cancel=cancel,
             )

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import kneegui.reposition.relax as relax_module
-from kneegui.errors import GeometryError
+from kneegui.errors import Cancelled, GeometryError
 from kneegui.geometry.transforms import RigidTransform
-from kneegui.meshopt.lbfgs import minimize_lbfgs
+from kneegui.meshopt.lbfgs import minimize_lbfgs, round_monitor
 from kneegui.meshopt.quality_optimiser import QualityOptions, optimise_quality, quality_aims
 from kneegui.model import ElementBlock
 from kneegui.quality import compute_quality
@@ -165,6 +165,54 @@ def test_lbfgs_minimises_a_badly_scaled_quadratic_and_stops_at_a_barrier():
 
     result = minimize_lbfgs(barrier, np.array([5.0]), 100)
     assert result.x[0] == pytest.approx(1.0, abs=1e-4)
+
+
+def test_lbfgs_calls_its_hook_after_every_iteration_without_changing_the_iterates():
+    evaluations = []
+
+    def rosenbrock(x):  # not solved in 30 iterations from the origin
+        evaluations.append(1)
+        a, b = x[:-1], x[1:]
+        f = float(np.sum(100.0 * (b - a * a) ** 2 + (1.0 - a) ** 2))
+        g = np.zeros_like(x)
+        g[:-1] = -400.0 * a * (b - a * a) - 2.0 * (1.0 - a)
+        g[1:] += 200.0 * (b - a * a)
+        return f, g
+
+    plain = minimize_lbfgs(rosenbrock, np.zeros(8), 30, ftol=0.0)
+    assert plain.nit == 30
+    calls = []
+    hooked = minimize_lbfgs(
+        rosenbrock, np.zeros(8), 30, ftol=0.0, each_iteration=lambda *a: calls.append(a)
+    )
+    np.testing.assert_array_equal(hooked.x, plain.x)
+    assert calls == [(k, 30) for k in range(1, 31)]
+
+    def stop_after_five(done: int, limit: int) -> None:
+        if done == 5:
+            raise Cancelled("stopped")
+
+    evaluations.clear()
+    with pytest.raises(Cancelled):
+        minimize_lbfgs(rosenbrock, np.zeros(8), 30, ftol=0.0, each_iteration=stop_after_five)
+    assert len(evaluations) < plain.nfev  # it stopped mid-run, not at the end
+
+
+def test_round_monitor_cancels_and_throttles_its_progress(monkeypatch):
+    import kneegui.meshopt.lbfgs as lbfgs
+
+    clock = iter([0.0, 0.1, 0.3, 0.4, 0.7])
+    monkeypatch.setattr(lbfgs.time, "perf_counter", lambda: next(clock))
+    reports, stop = [], []
+    monitor = round_monitor(
+        lambda: bool(stop), lambda f, m: reports.append((f, m)), lambda d: 0.5 * d, "x", "gone"
+    )
+    for done in (1, 2, 3, 4):  # at 0.1, 0.3, 0.4 and 0.7 s after the start
+        monitor(done, 10)
+    assert reports == [(0.1, "x"), (0.2, "x")]  # 0.3 and 0.7 s: a quarter second apart
+    stop.append(1)
+    with pytest.raises(Cancelled, match="gone"):
+        monitor(5, 10)
 
 
 def test_quality_optimisation_brings_the_region_within_its_aims():

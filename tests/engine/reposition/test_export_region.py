@@ -155,6 +155,42 @@ def test_pose_model_reports_progress_and_cancels(small_repositioner):
     assert fractions == sorted(fractions) and 0 <= fractions[0] and fractions[-1] < 1
 
 
+def test_pose_model_asks_to_cancel_after_every_solver_iteration(small_repositioner):
+    """A solver round on a whole-body model's region runs for tens of seconds: a cancel must not
+    wait for its end (asked once per round before, the 1M demo went 90 s without asking)."""
+    asked = []
+    posed = pose_model(small_repositioner, 90.0, cancel=lambda: bool(asked.append(1)))
+    relaxation = posed.report["relaxation"]
+    iterations = relaxation["iterations"] + relaxation["quality"]["iterations"]
+    assert relaxation["iterations"] > 10 * relaxation["rounds"]
+    assert len(asked) >= iterations
+
+
+def test_a_cancel_while_the_relaxation_is_set_up_stops_the_export(small_leg, small_setup):
+    """The first export builds the relaxation and the bone contact (the 1M demo: 8.7 and 3.8 s);
+    a cancel there stops it, and the next export builds them again and gets the same pose."""
+    rep = Repositioner(small_leg.model, small_setup, RepositionOptions())
+    messages, asked = [], []
+
+    def cancel_once_setting_up() -> bool:
+        asked.append(1)
+        return messages[-1:] == ["preparing the relaxation"] and len(asked) > 2
+
+    with pytest.raises(Cancelled, match="set-up"):
+        pose_model(
+            rep,
+            60.0,
+            progress=lambda fraction, message: messages.append(message),
+            cancel=cancel_once_setting_up,
+        )
+    assert rep.relaxation is None  # nothing half-built is kept
+    with pytest.raises(Cancelled, match="bone contact"):
+        pose_model(rep, 60.0, cancel=lambda: rep.relaxation is not None)
+    again = pose_model(rep, 60.0)
+    fresh = pose_model(Repositioner(small_leg.model, small_setup, RepositionOptions()), 60.0)
+    np.testing.assert_array_equal(again.model.coords, fresh.model.coords)
+
+
 def test_contact_extension_by_cg_matches_the_lu(small_repositioner, monkeypatch):
     import kneegui.reposition.contact as contact
 
