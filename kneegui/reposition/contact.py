@@ -467,10 +467,15 @@ class BoneContact:
         return (1.0 - s) * nearest + s * ray
 
     def resolve(
-        self, positions: NDArray[np.float64], transforms: Mapping[str, RigidTransform]
+        self,
+        positions: NDArray[np.float64],
+        transforms: Mapping[str, RigidTransform],
+        cancel: Callable[[], bool] | None = None,
     ) -> int:
         """Push candidates that came closer to a bone than allowed back out, spread the push
-        smoothly into the free soft tissue; in place. Returns the number of nodes pushed."""
+        smoothly into the free soft tissue; in place. Returns the number of nodes pushed.
+        ``cancel()`` is asked during the spreading's solve on a whole-body model (True raises
+        :class:`kneegui.errors.Cancelled`, ``positions`` then partly moved)."""
         if len(self.candidates) == 0:
             return 0
         p = positions[self.candidates]
@@ -506,7 +511,11 @@ class BoneContact:
             return 0
         positions[self.candidates] = p + push
         if len(self.free):
-            positions[self.free] += self._solve(self._coupling @ push)
+            rhs = self._coupling @ push
+            if isinstance(self._solve, LocalLaplaceSolve):
+                positions[self.free] += self._solve(rhs, cancel)
+            else:
+                positions[self.free] += self._solve(rhs)
         return len(moved)
 
 
@@ -549,8 +558,10 @@ class LocalLaplaceSolve:
             mask[nbrs] = True
             frontier = nbrs
 
-    def __call__(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The solution (n, k) of ``matrix @ x = rhs``."""
+    def __call__(
+        self, rhs: NDArray[np.float64], cancel: Callable[[], bool] | None = None
+    ) -> NDArray[np.float64]:
+        """The solution (n, k) of ``matrix @ x = rhs`` (``cancel`` as for :func:`block_cg`)."""
         n = self.matrix.shape[0]
         rhs = np.asarray(rhs, dtype=np.float64).reshape(n, -1)
         out = np.zeros_like(rhs)
@@ -570,6 +581,7 @@ class LocalLaplaceSolve:
                 np.zeros((len(region), rhs.shape[1])),
                 self.inv_diag[region],
                 rtol=1e-10,
+                cancel=cancel,
             )
             if len(region) == n:
                 break

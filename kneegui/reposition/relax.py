@@ -208,19 +208,23 @@ CORNER_CHUNK = 1 << 16
 
 
 def _rest_corner_geometry(
-    x: NDArray[np.float64], tets: NDArray[np.int64]
+    x: NDArray[np.float64],
+    tets: NDArray[np.int64],
+    cancel: Callable[[], bool] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
     """Which corners are usable (not flat at rest), and the inverse rest edge matrices
     ``(U, 3, 3)`` and rest determinants ``(U,)`` of the usable ones.
 
     Measured :data:`CORNER_CHUNK` corners at a time: each corner's figures are computed on
     their own, so they are those of measuring all at once, without the (C, 3, 3) edge matrices
-    of every corner held together.
+    of every corner held together. ``cancel()`` is asked before each chunk (True raises
+    :class:`kneegui.errors.Cancelled`).
     """
     bounds = range(0, len(tets), CORNER_CHUNK)
     usable = np.zeros(len(tets), dtype=bool)
     det = np.empty(len(tets))
     for lo in bounds:
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
         e0 = edge_matrices(x, tets[lo : lo + CORNER_CHUNK])
         d = det[lo : lo + CORNER_CHUNK] = np.linalg.det(e0)
         scale = np.maximum(np.abs(e0).max(axis=(1, 2)) ** 3, 1e-300)
@@ -228,6 +232,7 @@ def _rest_corner_geometry(
     inv = np.empty((int(usable.sum()), 3, 3))
     at = 0
     for lo in bounds:
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
         keep = usable[lo : lo + CORNER_CHUNK]
         if keep.any():
             rows = tets[lo : lo + CORNER_CHUNK][keep]
@@ -451,8 +456,7 @@ class ElasticRelaxation:
             pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64))
             self.pinned_corners = int(pinned.sum())
             tets = tets[~pinned]
-        check()
-        usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets)
+        usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets, cancel)
         check()
         self.tets = tets[usable]
         del tets
@@ -468,6 +472,7 @@ class ElasticRelaxation:
         self.is_free[self.free] = True
         self._rest_flat: bool | None = None  # :meth:`_flat_at_rest`
         self.n_nodes = n
+        check()
         # node adjacency along the corner edges (real nodes), for growing the relaxed region
         self._adjacency = edge_adjacency(np.repeat(self.tets[:, 0], 3), self.tets[:, 1:].ravel(), n)
         check()

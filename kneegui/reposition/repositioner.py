@@ -556,6 +556,7 @@ class Repositioner:
         model, g = self.model, self.groups
         soft_parts = np.array(self.setup.parts_of(*SOFT_ROLES), dtype=np.int64)
         free = self._soft_near_joint()
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
         near = np.zeros(model.n_nodes, dtype=bool)
         near[free] = True
         # only the soft elements with a node the relaxation may move: the relaxation keeps no
@@ -567,6 +568,7 @@ class Repositioner:
         }
         shells = {e: solids.pop(e) for e in ("quad4", "tri3") if e in solids}
         face_tets, virtual = shell_face_tetrahedra(model.blocks, shells, solids, model.n_nodes)
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
         # one array of corners, not the two it is made of as well (a whole-body model's region
         # has millions)
         tets = np.concatenate([corner_tetrahedra(model.blocks, solids), face_tets])
@@ -888,7 +890,7 @@ class Repositioner:
                     self.timings_s["relaxation contact"] = time.perf_counter() - t
                 check("pushing tissue out of the bones")
                 coords = np.array(coords, dtype=np.float64, copy=True)
-                self._relax_contact.resolve(coords, bone.transforms)
+                self._relax_contact.resolve(coords, bone.transforms, cancel)
             check("finding the region to relax")
         region = RelaxedRegion(relaxation, bone.transforms, self._smoothing_stage(bone))
         return improve_region(coords, region, options, progress, cancel)

@@ -233,6 +233,10 @@ def test_local_laplace_solve_stays_near_the_pushes():
     exact = spla.splu(sp.csc_matrix(lap)).solve(rhs)
     assert 0 < solve.last_region < n // 4  # the far end of the strip was never touched
     np.testing.assert_allclose(got, exact, rtol=0, atol=1e-6 * np.abs(exact).max())
+    # the bone contact's push-out on a whole-body model: its solve asks to cancel
+    with pytest.raises(Cancelled):
+        solve(rhs, cancel=lambda: True)
+    np.testing.assert_array_equal(solve(rhs, cancel=lambda: False), got)
 
 
 def test_bone_distance_query_does_not_depend_on_the_thread_count(small_repositioner):
