@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-from kneegui.errors import Cancelled
+from kneegui.errors import raise_if_cancelled
 from kneegui.meshopt.parallel import PARALLEL_KERNEL_LOCK
 
 
@@ -190,8 +190,7 @@ def round_monitor(
 
     def each_iteration(done: int, limit: int) -> None:
         nonlocal last
-        if cancel():
-            raise Cancelled(cancelled)
+        raise_if_cancelled(cancel, cancelled)
         now = time.perf_counter()
         if now - last >= PROGRESS_INTERVAL_S:
             last = now

@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kneegui.errors import Cancelled, GeometryError, raise_if_cancelled
+from kneegui.errors import GeometryError, raise_if_cancelled
 from kneegui.meshopt.batched import build_problems, nelder_mead
 from kneegui.meshopt.nodes import boundary_node_normals, unique_pairs
 from kneegui.meshopt.smoother_kernel import QUAD_FACES, element_measures, greedy_colours
@@ -585,8 +585,7 @@ def smooth_mesh(
         projector[i] = b @ b.T
 
     def check_cancel() -> None:
-        if cancel is not None and cancel():
-            raise Cancelled("smoothing cancelled")
+        raise_if_cancelled(cancel, "smoothing cancelled")
 
     def report_progress(fraction: float, message: str) -> None:
         if progress is not None:

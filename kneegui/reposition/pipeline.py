@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.errors import Cancelled
+from kneegui.errors import raise_if_cancelled
 from kneegui.geometry.axes import measure_flexion
 from kneegui.io.lsdyna import write_deck
 from kneegui.model import ElementBlock, Model
@@ -286,12 +286,10 @@ def pose_model(
         cancel=cancel,
     )
     relaxation, smoothing = improved.relaxation, improved.smoothing
-    should_cancel = cancel or (lambda: False)
 
     def measuring(step: str) -> None:
         # the report's measures take seconds on a whole-body model (the 1M demo: 4 s)
-        if should_cancel():
-            raise Cancelled(f"export cancelled while {step}")
+        raise_if_cancelled(cancel, f"export cancelled while {step}")
         report_progress(0.95, "measuring the pose")
 
     measuring("measuring the flexion")
@@ -442,8 +440,7 @@ def export_pose(
     report["model"] = str(Path(model_path).resolve())
     written = []
     if posed.passes_gate or force:
-        if cancel is not None and cancel():  # nothing written yet
-            raise Cancelled("export cancelled before writing the deck")
+        raise_if_cancelled(cancel, "export cancelled before writing the deck")  # nothing written
         report_progress(0.95, "writing the deck")
         t = time.perf_counter()
         written = write_deck(posed.model, out, flatten=flatten, overwrite=overwrite)

@@ -859,13 +859,11 @@ class Repositioner:
             options = replace(options, relax=None)
         relaxation = None
         report_progress = progress or (lambda fraction, message: None)
-        should_cancel = cancel or (lambda: False)
 
         def check(step: str) -> None:
             # each step below takes seconds on a whole-body model (the 1M demo: 8.7 s to build
             # the relaxation)
-            if should_cancel():
-                raise Cancelled(f"export cancelled before {step}")
+            raise_if_cancelled(cancel, f"export cancelled before {step}")
             report_progress(0.0, step)
 
         if options.relax is not None:
