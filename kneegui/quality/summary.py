@@ -54,7 +54,6 @@ TABLE_METRICS: tuple[str, ...] = ("jacobian", "aspect", "warpage", "skew", *TET_
 class _Flat:
     """Every measured element of a result as flat arrays (one row per element)."""
 
-    etype: NDArray[np.str_]
     element_ids: NDArray[np.int64]
     part_ids: NDArray[np.int64]
     values: dict[str, NDArray[np.float64]]
@@ -78,11 +77,10 @@ def _flatten(
     wanted = [t for t in result.by_type if etypes is None or t in set(etypes)]
     parts = {m: [] for m in metrics}
     has = {m: [] for m in metrics if m in TET_THRESHOLD_METRICS}
-    etype_col, eids, pids, vols, inv, solid = [], [], [], [], [], []
+    eids, pids, vols, inv, solid = [], [], [], [], []
     for t in wanted:
         q = result[t]
         block = model.blocks[t]
-        etype_col.append(np.full(len(q), t))
         eids.append(block.ids[q.rows])
         pids.append(block.part_ids[q.rows])
         for m in metrics:
@@ -97,7 +95,6 @@ def _flatten(
         return np.concatenate(chunks) if chunks else np.zeros(0, dtype=dtype)
 
     return _Flat(
-        etype=cat(etype_col, str),
         element_ids=cat(eids, np.int64),
         part_ids=cat(pids, np.int64),
         values={m: cat(v, float) for m, v in parts.items()},
@@ -125,31 +122,46 @@ class _Limits:
     code: NDArray[np.int32]
     tables: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]
 
-    def of(self, metric: str, rows: NDArray[np.int64]) -> tuple[NDArray, NDArray]:
-        """The warn and fail limits of the elements at ``rows`` for ``metric``."""
+    def of(
+        self, metric: str, rows: NDArray[np.int64] | None
+    ) -> tuple[NDArray | float, NDArray | float]:
+        """The warn and fail limits of the elements at ``rows`` (None: every element) for
+        ``metric``; two numbers when every role has the same."""
         warn, fail = self.tables[metric]
-        at = self.code[rows]
+        if np.all(warn == warn[0]) and np.all(fail == fail[0]):
+            return float(warn[0]), float(fail[0])
+        at = self.code if rows is None else self.code[rows]
         return warn[at], fail[at]
 
 
 def _group(
     flat: _Flat,
-    mask: NDArray[np.int64],
+    mask: NDArray[np.int64] | None,
     limits: _Limits,
     thresholds: Thresholds,
     initial: _Flat | None,
 ) -> dict:
-    """Statistics of the elements at positions ``mask`` (an index array) of the flat arrays."""
-    out: dict = {"elements": len(mask), "inverted": int(np.count_nonzero(flat.inverted[mask]))}
+    """Statistics of the elements at positions ``mask`` (an index array; None: every element,
+    read in place, as a whole-body model's arrays are hundreds of MB) of the flat arrays."""
+
+    def at(values: NDArray, rows: NDArray[np.int64] | None) -> NDArray:
+        return values if rows is None else values[rows]
+
+    inverted = at(flat.inverted, mask)
+    out: dict = {"elements": len(inverted), "inverted": int(np.count_nonzero(inverted))}
     directions = thresholds.for_role(None)
     for m in limits.tables:
-        rows = mask[flat.has[m][mask]] if m in flat.has else mask  # tet measures: tets only
-        v = flat.values[m][rows]
+        rows = mask
+        if m in flat.has and not at(flat.has[m], mask).all():  # tet measures: tets only
+            rows = np.flatnonzero(flat.has[m]) if mask is None else mask[flat.has[m][mask]]
+        v = at(flat.values[m], rows)
         t = directions[m]
         if len(v) == 0:
             out[m] = {"worst": None, "mean": None, "std": None, "warn": 0, "fail": 0}
             continue
-        finite = v[np.isfinite(v)]
+        is_finite = np.isfinite(v)
+        finite = v if is_finite.all() else v[is_finite]
+        del is_finite
         warn_lim, fail_lim = limits.of(m, rows)
         entry = {
             "worst": t.worst(v),
@@ -159,16 +171,18 @@ def _group(
             "fail": int(np.count_nonzero(t.worse_than(v, fail_lim))),
         }
         if initial is not None:
-            v0 = initial.values[m][rows]
+            v0 = at(initial.values[m], rows)
             worst0 = t.worst(v0)
             entry["initial_worst"] = worst0
             entry["worse_than_initial"] = int(np.count_nonzero(t.worse_than(v, worst0)))
         out[m] = entry
     if initial is not None:
-        solid = mask[flat.solid[mask]]
-        out["initial_inverted"] = int(np.count_nonzero(initial.inverted[mask]))
+        solid = np.flatnonzero(flat.solid) if mask is None else mask[flat.solid[mask]]
+        if len(solid) == len(flat.solid):
+            solid = None  # every element
+        out["initial_inverted"] = int(np.count_nonzero(at(initial.inverted, mask)))
         out["volume_change"] = volume_change(
-            flat.volume[solid], initial.volume[solid], flat.element_ids[solid]
+            at(flat.volume, solid), at(initial.volume, solid), at(flat.element_ids, solid)
         )
     return out
 
@@ -230,11 +244,10 @@ def summarize_quality(
             np.array([t.fail for t in levels], dtype=np.float64),
         )
     limits = _Limits(code, tables)
-    everything = np.arange(len(flat.part_ids))
     summary: dict = {
         "metrics": metrics,
         "thresholds": thresholds.to_dict(metrics),
-        "model": _group(flat, everything, limits, thresholds, init),
+        "model": _group(flat, None, limits, thresholds, init),
         "parts": {},
         "roles": {},
     }

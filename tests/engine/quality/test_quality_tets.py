@@ -13,6 +13,7 @@ from kneegui.quality import (
     TET_THRESHOLD_METRICS,
     compute_quality,
     format_quality_table,
+    jsonable,
     load_thresholds,
     quality_gate,
     summarize_quality,
@@ -336,3 +337,27 @@ def test_cli_quality_on_a_tet_deck(tmp_path, block_model, capsys):
     data = json.loads(capsys.readouterr().out)
     worst = compute_quality(model.coords, model.blocks)["tet4"].tet_collapse.min()
     assert data["model"]["tet_collapse"]["worst"] == pytest.approx(worst, abs=1e-6)
+
+
+def test_the_model_statistics_read_in_place_equal_those_over_an_index_of_every_element(
+    block_model,
+):
+    """The model's group reads the flat arrays in place (a whole-body model's are hundreds of
+    MB); a role over every part takes the indexed path: the same figures, tets and shells
+    mixed, per-role limits, an infinite aspect and the initial pose included."""
+    model = _tet_model(block_model)
+    initial = compute_quality(model.coords, model.blocks)
+    coords = model.coords.copy()
+    tet = model.blocks["tet4"].conn[0]
+    coords[tet[1]] = coords[tet[0]]  # a collapsed tet: infinite aspect
+    q = compute_quality(coords, model.blocks)
+    assert not np.isfinite(q["tet4"].tet_aspect).all()
+    s = summarize_quality(
+        model.with_coords(coords), q, {"flesh": [2], "skin": [3], "all": [1, 2, 3]}, initial=initial
+    )
+    everything = dict(s["roles"]["all"])
+    del everything["part_ids"]
+    assert json.dumps(jsonable(everything), sort_keys=True) == json.dumps(
+        jsonable(s["model"]), sort_keys=True
+    )
+    assert s["model"]["elements"] == sum(len(b) for b in model.blocks.values())
