@@ -177,6 +177,7 @@ class BoneSurfaceDistance:
         self.node_xyz = nodes_xyz
         self.node_tris = _incident(tris, np.arange(len(nodes_xyz)))
         self.tree = cKDTree(nodes_xyz)
+        self.lower, self.upper = nodes_xyz.min(axis=0), nodes_xyz.max(axis=0)
         edge = np.linalg.norm(tri_xyz - np.roll(tri_xyz, 1, axis=1), axis=2)  # (T, 3)
         self.longest_edge = float(edge.max(initial=0.0))
         # every point of a triangle lies within (longest edge) / sqrt 3 of one of its corners
@@ -187,6 +188,11 @@ class BoneSurfaceDistance:
         self.corner_angle = np.arctan2(
             np.linalg.norm(np.cross(u, v), axis=2), np.einsum("tij,tij->ti", u, v)
         )
+
+    def in_box(self, p: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which points (M, 3), in the rest frame, lie in the surface's bounding box: those
+        outside it are outside the (closed) bone."""
+        return np.all((p >= self.lower) & (p <= self.upper), axis=1)
 
     def query(
         self, p: NDArray[np.float64], threads: int | None = None

@@ -959,15 +959,22 @@ class Repositioner:
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         if tolerance is None:
             tolerance = TISSUE_IN_BONE_TOLERANCE * size
-        guard = self.bone_depth_guard(coords, bone)
+        surfaces = self._bone_surfaces()
+        segments = [name for name in surfaces if name in bone.transforms]
         nodes = self._soft_near_joint()
-        depth = -guard.start_depth(nodes)  # (nodes, segments), + inside
+        # (nodes, segments), + inside; a node outside a bone's bounding box is outside the
+        # bone and is not measured (most of the tissue around a whole-body model's knee)
+        depth = np.full((len(nodes), len(segments)), -np.inf)
+        for j, name in enumerate(segments):
+            rest = bone.transforms[name].inverse().apply(coords[nodes])
+            boxed = surfaces[name].in_box(rest)
+            depth[boxed, j] = -surfaces[name].query(rest[boxed])[0]
         per_bone = {
             name: {
                 "nodes": int(np.sum(depth[:, j] > tolerance)),
                 "deepest": float(depth[:, j].max(initial=0.0)) + 0.0,  # + 0.0: no -0.0
             }
-            for j, name in enumerate(guard.segments)
+            for j, name in enumerate(segments)
         }
         return {
             "tolerance": float(tolerance),

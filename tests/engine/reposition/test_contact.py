@@ -109,6 +109,36 @@ def test_tissue_in_bones_agrees_with_the_independent_check(
     assert found["deepest"] > 10 * found["tolerance"]
 
 
+def test_tissue_in_bones_skips_nodes_outside_a_bone_box_with_the_same_answer(
+    small_repositioner,
+):
+    """The in-bone check measures only the nodes in a bone's bounding box (a node outside it is
+    outside the bone); the counts and depths are those of measuring every node."""
+    rep = small_repositioner
+    mapped, bone = rep.pose(90.0), rep.bone_pose(90.0)
+    found = rep.tissue_in_bones(mapped, bone)
+    guard = rep.bone_depth_guard(mapped, bone)
+    nodes = rep._soft_near_joint()
+    every = -guard.start_depth(nodes)  # every node measured, + inside
+    skipped = 0
+    for j, name in enumerate(guard.segments):
+        assert found["bones"][name]["nodes"] == int(np.sum(every[:, j] > found["tolerance"]))
+        assert found["bones"][name]["deepest"] == max(float(every[:, j].max()), 0.0)
+        rest = bone.transforms[name].inverse().apply(mapped[nodes])
+        boxed = rep._bone_surfaces()[name].in_box(rest)
+        assert np.all(every[~boxed, j] < 0.0), name  # outside the box: outside the bone
+        skipped += int(np.sum(~boxed))
+    assert skipped > len(nodes)  # most of the bone tests are skipped
+    assert found["bones"]["tibia"]["nodes"] > 0  # the mapping left tissue in a bone
+
+
+def test_a_point_outside_the_surface_box_is_outside_the_surface():
+    surface = BoneSurfaceDistance(CUBE[TRIANGLES])
+    points = np.array([[5.0, 5.0, 5.0], [10.0, 0.0, 5.0], [10.001, 5.0, 5.0], [-1.0, 5.0, 5.0]])
+    np.testing.assert_array_equal(surface.in_box(points), [True, True, False, False])
+    assert np.all(surface.query(points[~surface.in_box(points)])[0] > 0.0)
+
+
 def test_the_pose_report_counts_tissue_in_bones_and_warns(small_repositioner):
     posed = pose_model(small_repositioner, 120.0, smooth=False)
     found = posed.report["tissue_in_bones"]
