@@ -10,12 +10,13 @@ relative layout, or inlined with ``flatten=True``. All files are written atomica
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from kneegui.errors import DeckError, OutputConflictError
+from kneegui.errors import DeckError, OutputConflictError, raise_if_cancelled
 from kneegui.io.atomic import atomic_write_many
 from kneegui.io.fields import FieldError, format_fixed_width, format_free_float
 from kneegui.io.lsdyna_read import DeckFile, DeckSource
@@ -41,7 +42,11 @@ def _changed_fields(model: Model, src: DeckSource) -> NDArray[np.bool_]:
 
 
 def _patched_file(
-    fi: int, model: Model, src: DeckSource, changed: NDArray[np.bool_]
+    fi: int,
+    model: Model,
+    src: DeckSource,
+    changed: NDArray[np.bool_],
+    cancel: Callable[[], bool] | None = None,
 ) -> tuple[bytearray, list[tuple[int, int, bytes]]]:
     """The file's bytes with fixed-width fields patched in place, plus line-level edits."""
     f = src.files[fi]
@@ -67,6 +72,7 @@ def _patched_file(
             # a block of nodes at a time: formatting keeps a dozen temporaries per value, and
             # the byte offsets are w per value (a whole-body deck has millions of nodes)
             for lo in range(0, len(rows), WRITE_BLOCK):
+                raise_if_cancelled(cancel, "write cancelled; nothing written")
                 block = slice(lo, lo + WRITE_BLOCK)
                 text = _format(model, rows[block], j, w, src, fi)
                 buf[offs[block, None] + np.arange(w)[None, :]] = text
@@ -157,6 +163,7 @@ def write_deck(
     flatten: bool = False,
     overwrite: bool = False,
     allow_overwrite_input: bool = False,
+    cancel: Callable[[], bool] | None = None,
 ) -> list[Path]:
     """Write a model read by :func:`kneegui.io.lsdyna.read_deck` back out, losslessly.
 
@@ -175,6 +182,10 @@ def write_deck(
         refused (:mod:`kneegui.io.output_plan`).
     allow_overwrite_input : bool
         Permit an output path that is one of the input files (off by default).
+    cancel : callable, optional
+        Asked between blocks of formatted values and of written bytes; True raises
+        :class:`~kneegui.errors.Cancelled` and nothing is written (no file replaced, no
+        temporary file left).
 
     Returns
     -------
@@ -197,7 +208,7 @@ def write_deck(
     out_main = Path(out_path)
     changed = _changed_fields(model, src)
     rendered: dict[int, tuple[bytearray, list]] = {
-        fi: _patched_file(fi, model, src, changed) for fi in range(len(src.files))
+        fi: _patched_file(fi, model, src, changed, cancel) for fi in range(len(src.files))
     }
     outputs: dict[Path, bytes | bytearray] = {}
     if flatten:
@@ -248,7 +259,7 @@ def write_deck(
         overwrite=overwrite,
         allow_overwrite_input=allow_overwrite_input,
     )
-    atomic_write_many(todo)
+    atomic_write_many(todo, cancel)
     return list(outputs)
 
 

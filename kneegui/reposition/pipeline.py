@@ -419,7 +419,8 @@ def export_pose(
     context_timings : dict, optional
         Timings of the caller's stages (read, setup, precompute) added to the report's.
     progress, cancel : callable, optional
-        As for :func:`pose_model`; the write is the last 5 % of the progress.
+        As for :func:`pose_model`; the write is the last 5 % of the progress. The write asks
+        ``cancel()`` too; a cancel during it leaves nothing written.
 
     Returns
     -------
@@ -443,7 +444,7 @@ def export_pose(
         raise_if_cancelled(cancel, "export cancelled before writing the deck")  # nothing written
         report_progress(0.95, "writing the deck")
         t = time.perf_counter()
-        written = write_deck(posed.model, out, flatten=flatten, overwrite=overwrite)
+        written = write_deck(posed.model, out, flatten=flatten, overwrite=overwrite, cancel=cancel)
         report["timings_s"]["write"] = time.perf_counter() - t
     report["written"] = [str(p) for p in written]
     report_progress(1.0, "written")

@@ -458,3 +458,41 @@ def test_a_value_that_does_not_fit_names_its_own_node(tmp_path):
         _format(model.with_coords(coords), np.arange(3), 0, 4, model.source, 0)
     assert "cube.k:11:" in str(err.value)  # node 3's line in the deck
     assert "value 1e+300 does not fit" in str(err.value)
+
+
+def test_a_cancelled_write_leaves_nothing_and_an_uncancelled_one_the_same_bytes(
+    tmp_path, monkeypatch
+):
+    """``write_deck(cancel=...)`` asks between blocks of formatted values and of written bytes
+    (blocks of 2 nodes and 64 bytes here): a cancel at any question leaves no deck and no
+    temporary file; answering False all along writes the bytes a write without it writes."""
+    from kneegui.errors import Cancelled
+    from kneegui.io import atomic, lsdyna_write
+
+    monkeypatch.setattr(lsdyna_write, "WRITE_BLOCK", 2)
+    monkeypatch.setattr(atomic, "WRITE_CHUNK", 64)
+    model = read_deck(write(tmp_path, "cube.k", HEX_DECK))
+    moved = model.with_coords(model.coords + 0.25)
+    reference = write_deck(moved, tmp_path / "ref" / "cube.k")[0].read_bytes()
+    asked = [0]
+
+    def count() -> bool:
+        asked[0] += 1
+        return False
+
+    out = tmp_path / "out" / "cube.k"
+    write_deck(moved, out, cancel=count)
+    assert out.read_bytes() == reference
+    questions = asked[0]
+    assert questions >= 3 * 4 + len(reference) // 64  # 8 nodes x 3 coordinates, the chunks
+    for call in range(1, questions + 1):
+        asked[0] = 0
+        target = tmp_path / f"cancelled{call}" / "cube.k"
+
+        def cancel(call=call) -> bool:
+            asked[0] += 1
+            return asked[0] >= call
+
+        with pytest.raises(Cancelled):
+            write_deck(moved, target, cancel=cancel)
+        assert not target.parent.exists() or list(target.parent.iterdir()) == []

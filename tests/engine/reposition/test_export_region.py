@@ -264,3 +264,41 @@ def test_block_cg_can_be_cancelled():
     with pytest.raises(Cancelled):
         block_cg(sp.csr_matrix(lap), rhs, np.zeros_like(rhs), 1.0 / lap.diagonal(), cancel=cancel)
     assert len(calls) == 3
+
+
+def test_a_cancel_during_the_write_leaves_no_deck(tmp_path, monkeypatch):
+    """The write of a whole-body deck takes seconds: a cancel while it runs stops it, and
+    neither the deck nor a temporary file is left (small write blocks here, so that the
+    demo's write asks several times)."""
+    from kneegui.demo import write_demo
+    from kneegui.io import atomic, lsdyna_write
+    from kneegui.io.lsdyna import read_deck
+    from kneegui.reposition.pipeline import export_pose
+
+    monkeypatch.setattr(lsdyna_write, "WRITE_BLOCK", 256)
+    monkeypatch.setattr(atomic, "WRITE_CHUNK", 1 << 16)
+    deck, setup_path = write_demo(tmp_path / "in", elements=2000)
+    model = read_deck(deck)
+    rep = Repositioner(model, load_setup(setup_path, model))
+    messages: list[str] = []
+    asked_while_writing = [0]
+
+    def cancel() -> bool:
+        if messages and messages[-1] == "writing the deck":
+            asked_while_writing[0] += 1
+            return asked_while_writing[0] >= 3  # well inside the write
+        return False
+
+    out = tmp_path / "out" / "posed.k"
+    with pytest.raises(Cancelled, match="nothing written"):
+        export_pose(
+            rep,
+            60.0,
+            out,
+            model_path=deck,
+            force=True,
+            progress=lambda fraction, message: messages.append(message),
+            cancel=cancel,
+        )
+    assert asked_while_writing[0] == 3
+    assert not out.parent.exists() or list(out.parent.iterdir()) == []
