@@ -458,7 +458,10 @@ class ElasticRelaxation:
             tets = tets[~pinned]
         usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets, cancel)
         check()
-        self.tets = tets[usable]
+        # node indices fit 32 bits below 2**31 nodes: half the memory of the corners' table,
+        # held for every later export (the 2M-node deck: millions of corners)
+        index = np.int32 if n_aug < 2**31 else np.int64
+        self.tets = tets[usable].astype(index)
         del tets
         self.weight = (
             np.ones(len(self.tets)) if self.options.uniform_weights else np.abs(det0) / 6.0
