@@ -487,6 +487,7 @@ class BoneContact:
         p = positions[self.candidates]
         push = np.zeros_like(p)
         for srf in self.surfaces:
+            raise_if_cancelled(cancel, "export cancelled while pushing tissue out of the bones")
             if len(srf.rows) == 0:
                 continue
             t = transforms[srf.segment]

@@ -604,11 +604,15 @@ class ElasticRelaxation:
         return np.vstack([x, self.virtual @ x]) if self.virtual.shape[0] else x
 
     # ------------------------------------------------------------------ region
-    def corner_distortion(self, x: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
-        """Per corner: det J and the shape distortion ``|J|^2 / (3 det J^(2/3))`` (1 = similar)."""
+    def corner_distortion(
+        self, x: NDArray[np.float64], cancel: Callable[[], bool] | None = None
+    ) -> tuple[NDArray, NDArray]:
+        """Per corner: det J and the shape distortion ``|J|^2 / (3 det J^(2/3))`` (1 = similar);
+        ``cancel`` is asked before every chunk of corners."""
         xa = self.augment(x)
         det, shape = np.empty(len(self.tets)), np.empty(len(self.tets))
         for lo in range(0, len(self.tets), CORNER_CHUNK):
+            raise_if_cancelled(cancel, "relaxation cancelled while finding its region")
             part = slice(lo, lo + CORNER_CHUNK)
             jac = edge_matrices(xa, self.tets[part]) @ self.inv_rest[part]
             d = det[part] = np.linalg.det(jac)
@@ -618,12 +622,15 @@ class ElasticRelaxation:
         return det, shape
 
     def degraded_region(
-        self, x: NDArray[np.float64], extra_seeds: NDArray[np.int64] | None = None
+        self,
+        x: NDArray[np.float64],
+        extra_seeds: NDArray[np.int64] | None = None,
+        cancel: Callable[[], bool] | None = None,
     ) -> NDArray[np.int64]:
         """Free nodes within ``rings`` edges or ``region_radius`` of a degraded corner (or of
-        ``extra_seeds``)."""
+        ``extra_seeds``); ``cancel`` as for :meth:`corner_distortion`."""
         opt = self.options
-        det, shape = self.corner_distortion(x)
+        det, shape = self.corner_distortion(x, cancel)
         bad = (det < opt.seed_volume_ratio) | (det > 1.0 / opt.seed_volume_ratio)
         bad |= shape > opt.seed_shape
         seed = np.zeros(self.n_nodes, dtype=bool)
@@ -695,8 +702,11 @@ class ElasticRelaxation:
         )
 
     # ------------------------------------------------------------------ solve
-    def energy(self, free: NDArray[np.int64]) -> FoldoverEnergy:
-        """The foldover-free energy of the corners touching the nodes ``free``."""
+    def energy(
+        self, free: NDArray[np.int64], cancel: Callable[[], bool] | None = None
+    ) -> FoldoverEnergy:
+        """The foldover-free energy of the corners touching the nodes ``free`` (``cancel`` is
+        asked while it is built)."""
         rows = self._node_rows.touching(free)
         return FoldoverEnergy(
             self.tets[rows],
@@ -709,6 +719,7 @@ class ElasticRelaxation:
             self.options.volume_weight,
             self.options.shell_weight,
             rows=rows,
+            cancel=cancel,
         )
 
     def region(self, transforms: Mapping[str, RigidTransform] | None = None) -> RelaxedRegion:
@@ -775,7 +786,7 @@ class ElasticRelaxation:
         if self.contour_order is not None:
             crossing = self.contour_order.crossing(x)
             penetrating = crossing if penetrating is None else np.union1d(penetrating, crossing)
-        free = self.degraded_region(x, penetrating)
+        free = self.degraded_region(x, penetrating, cancel)
         report.region_seconds = time.perf_counter() - t
         raise_if_cancelled(cancel, "relaxation cancelled")
         report.free_nodes = len(free)
@@ -809,7 +820,7 @@ class ElasticRelaxation:
         optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates
         and the smallest corner det J."""
         opt = self.options
-        whole = sub = self.energy(free)
+        whole = sub = self.energy(free, should_cancel)
         raise_if_cancelled(should_cancel, "relaxation cancelled")
         x_start = x.copy()  # the pose: where a restart puts stuck nodes back
         _, _, det = sub.energy(x[sub.nodes], 1e-3)
@@ -862,7 +873,9 @@ class ElasticRelaxation:
                 x[stuck] = x_start[stuck]
                 sub = whole
                 if opt.restart_rings > 0:
-                    sub = self.energy(self._within_rings(stuck, opt.restart_rings, free))
+                    sub = self.energy(
+                        self._within_rings(stuck, opt.restart_rings, free), should_cancel
+                    )
                 # a sliding skin node cannot leave its tangent plane, so the tissue pressed
                 # against it from inside (by a bone, or pinched in a crease) has nowhere to go:
                 # the stuck ones may now move off their plane
@@ -984,7 +997,10 @@ class ElasticRelaxation:
                     # let the last round's energy go before the next one is built: on a
                     # whole-body model each holds hundreds of MB of corners
                     sub = fun = None
-                    sub = self.energy(focus) if isinstance(focus, np.ndarray) else focus
+                    if isinstance(focus, np.ndarray):
+                        sub = self.energy(focus, should_cancel)
+                    else:
+                        sub = focus
                     xl, scale, sliding, is_sub_free, contact_global = variables(sub, pass_contact)
         x[sub.nodes] = xl
         if sub is not whole:

@@ -667,7 +667,7 @@ class Repositioner:
         soft_parts = np.array(setup.parts_of(*SOFT_ROLES), dtype=np.int64)
         masks = {etype: np.isin(b.part_ids, soft_parts) for etype, b in model.blocks.items()}
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
-        edges = mesh_edges(model.blocks, masks)
+        edges = mesh_edges(model.blocks, masks, cancel)
         raise_if_cancelled(cancel, "bone contact set-up cancelled")
         return BoneContact(
             model.coords,

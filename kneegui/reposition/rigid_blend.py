@@ -20,7 +20,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from kneegui.errors import Cancelled
+from kneegui.errors import Cancelled, raise_if_cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.meshopt.parallel import PARALLEL_KERNEL_LOCK
 from kneegui.model import ElementBlock
@@ -32,10 +32,16 @@ _SMALL = 1e-9
 DIRECT_SOLVE_MAX = 50_000
 
 
-def mesh_edges(blocks: Mapping[str, ElementBlock], element_masks: Mapping[str, NDArray]) -> NDArray:
-    """Unique undirected edges (E, 2) of the selected elements."""
+def mesh_edges(
+    blocks: Mapping[str, ElementBlock],
+    element_masks: Mapping[str, NDArray],
+    cancel: Callable[[], bool] | None = None,
+) -> NDArray:
+    """Unique undirected edges (E, 2) of the selected elements (``cancel`` is asked between
+    the element types and before the sort: seconds on a whole-body model)."""
     chunks = []
     for etype, block in blocks.items():
+        raise_if_cancelled(cancel, "cancelled while collecting the mesh's edges")
         mask = element_masks.get(etype)
         if mask is None or not mask.any():
             continue
@@ -45,6 +51,7 @@ def mesh_edges(blocks: Mapping[str, ElementBlock], element_masks: Mapping[str, N
     if not chunks:
         return np.zeros((0, 2), dtype=np.int64)
     e = np.sort(np.concatenate(chunks), axis=1)
+    raise_if_cancelled(cancel, "cancelled while collecting the mesh's edges")
     e = e[e[:, 0] != e[:, 1]]
     if len(e) == 0 or int(e[:, 1].max()) >= 2**31:
         return np.unique(e, axis=0)
