@@ -444,7 +444,12 @@ class BoneContact:
                 shape=(len(free), len(free)),
             )
             if len(free) <= DIRECT_SOLVE_MAX:
-                self._solve = spla.splu(lap.tocsc()).solve
+                lu = spla.splu(lap.tocsc())
+
+                def direct(rhs: NDArray[np.float64], cancel=None) -> NDArray[np.float64]:
+                    return lu.solve(rhs)  # one call of a fraction of a second: nothing to ask
+
+                self._solve = direct
             else:
                 # a whole-body model's soft tissue: an LU grows super-linearly (time and memory);
                 # the pushes are local, so solve only around them
@@ -480,8 +485,9 @@ class BoneContact:
     ) -> int:
         """Push candidates that came closer to a bone than allowed back out, spread the push
         smoothly into the free soft tissue; in place. Returns the number of nodes pushed.
-        ``cancel()`` is asked during the spreading's solve on a whole-body model (True raises
-        :class:`kneegui.errors.Cancelled`, ``positions`` then partly moved)."""
+        ``cancel()`` is asked before each bone (True raises :class:`kneegui.errors.Cancelled`,
+        nothing moved) and during the spreading's solve on a whole-body model (``positions``
+        then partly moved)."""
         if len(self.candidates) == 0:
             return 0
         p = positions[self.candidates]
@@ -518,11 +524,7 @@ class BoneContact:
             return 0
         positions[self.candidates] = p + push
         if len(self.free):
-            rhs = self._coupling @ push
-            if isinstance(self._solve, LocalLaplaceSolve):
-                positions[self.free] += self._solve(rhs, cancel)
-            else:
-                positions[self.free] += self._solve(rhs)
+            positions[self.free] += self._solve(self._coupling @ push, cancel)
         return len(moved)
 
 
