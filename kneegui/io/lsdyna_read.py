@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import re
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -56,18 +57,74 @@ _KEYWORD_FAMILIES = frozenset(
 
 @dataclass
 class DeckFile:
-    """One file of a deck: where it is, where it goes on output, and its bytes."""
+    """One file of a deck: where it is, where it goes on output, and its bytes.
+
+    The bytes stay in memory while the deck is read; :func:`read_deck` then lets them go
+    (:meth:`release`), because a whole-body deck is hundreds of MB that only the lossless
+    writer needs again. :attr:`data` reads them back from disk then, checked against the
+    size and CRC-32 taken when the file was read: a file that changed since is refused rather
+    than patched at stale byte offsets.
+    """
 
     path: Path
     rel_path: Path
-    data: bytes
-    line_starts: NDArray[np.int64] = field(repr=False)
-    line_ends: NDArray[np.int64] = field(repr=False)  # exclusive, without "\r\n"
+    resident: bytes | None = field(repr=False)
+    line_starts: NDArray[np.int64] | None = field(repr=False)
+    line_ends: NDArray[np.int64] | None = field(repr=False)  # exclusive, without "\r\n"
     includes: list[tuple[int, int, list[int]]] = field(default_factory=list, repr=False)
     end_offset: int | None = None  # byte offset of the *END line, if any
+    size: int = field(init=False, default=0)
+    crc32: int = field(init=False, default=0)
+
+    def __post_init__(self) -> None:
+        if self.resident is not None:
+            self.size = len(self.resident)
+            self.crc32 = zlib.crc32(self.resident)
+
+    @property
+    def data(self) -> bytes | bytearray:
+        """The file's bytes as they were read (from memory, or read back and checked)."""
+        return self.resident if self.resident is not None else self.read_back()
+
+    def writable_copy(self) -> bytearray:
+        """A fresh, mutable copy of the file's bytes for the writer to patch."""
+        return bytearray(self.resident) if self.resident is not None else self.read_back()
+
+    def read_back(self) -> bytearray:
+        """The file's bytes read again from disk, checked against the read.
+
+        Raises
+        ------
+        DeckError
+            If the file cannot be read or its size or CRC-32 differ from the read's.
+        """
+        buf = bytearray(self.size + 1)  # one more byte than expected: a longer file shows
+        try:
+            with open(self.path, "rb") as fh:
+                n = fh.readinto(buf)
+        except OSError as exc:
+            raise DeckError(
+                f"cannot read it again to write the deck: {exc.strerror}", self.path, None
+            ) from None
+        if n != self.size or zlib.crc32(memoryview(buf)[:n]) != self.crc32:
+            raise DeckError(
+                "changed on disk since it was read; open the deck again before writing",
+                self.path,
+                None,
+            )
+        del buf[n:]
+        return buf
+
+    def release(self) -> None:
+        """Drop the bytes and line tables from memory (:attr:`data` reads them back)."""
+        self.resident = None
+        self.line_starts = None
+        self.line_ends = None
 
     def line_number(self, offset: int) -> int:
         """1-based line number of a byte offset."""
+        if self.line_starts is None:
+            return self.data.count(b"\n", 0, offset) + 1
         return int(np.searchsorted(self.line_starts, offset, side="right"))
 
 
@@ -927,8 +984,10 @@ def read_deck(path: str | os.PathLike[str], *, check_references: bool = True) ->
     Returns
     -------
     Model
-        Nodes, element blocks, parts and sets; ``model.source`` keeps every file's bytes and the
-        position of each node's coordinate fields for :func:`kneegui.io.lsdyna.write_deck`.
+        Nodes, element blocks, parts and sets; ``model.source`` keeps every file's path, size
+        and CRC-32 and the position of each node's coordinate fields for
+        :func:`kneegui.io.lsdyna.write_deck`, which reads the files' bytes again (a file changed
+        on disk since is refused; :class:`DeckFile`).
 
     Raises
     ------
@@ -940,4 +999,7 @@ def read_deck(path: str | os.PathLike[str], *, check_references: bool = True) ->
         raise DeckError("file not found", main, None)
     reader = _DeckReader(main, strict=check_references)
     reader.read_file(main, Path(main.name), (), None)
-    return reader.build()
+    model = reader.build()
+    for f in reader.files:
+        f.release()
+    return model

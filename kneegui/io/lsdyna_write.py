@@ -50,7 +50,7 @@ def _patched_file(
 ) -> tuple[bytearray, list[tuple[int, int, bytes]]]:
     """The file's bytes with fixed-width fields patched in place, plus line-level edits."""
     f = src.files[fi]
-    data = bytearray(f.data)
+    data = f.writable_copy()
     edits: list[tuple[int, int, bytes]] = []
     nodes = np.flatnonzero((src.node_file == fi) & changed.any(axis=1))
     if len(nodes) == 0:
@@ -79,7 +79,7 @@ def _patched_file(
     for k in np.flatnonzero(~in_place).tolist():
         node = int(nodes[k])
         s, e = int(start[k]), int(src.node_line_end[node])
-        line = bytes(f.data[s:e])
+        line = bytes(data[s:e])  # lines patched in place above are other lines
         if width[k] == 0:
             fields = line.decode("latin-1").split(",")
             while len(fields) < 4:

@@ -496,3 +496,52 @@ def test_a_cancelled_write_leaves_nothing_and_an_uncancelled_one_the_same_bytes(
         with pytest.raises(Cancelled):
             write_deck(moved, target, cancel=cancel)
         assert not target.parent.exists() or list(target.parent.iterdir()) == []
+
+
+def _deck_with_include(tmp_path: Path) -> Path:
+    write(
+        tmp_path,
+        "d/main.k",
+        "*KEYWORD\n*INCLUDE\ninc/a.k\n" + part_cards(1) + "*ELEMENT_SOLID\n"
+        "       1       1       1       2       3       4       5       6       7       8\n*END\n",
+    )
+    write(tmp_path, "d/inc/a.k", "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*END\n")
+    return tmp_path / "d" / "main.k"
+
+
+def test_the_read_lets_the_bytes_go_and_the_write_reads_them_back(tmp_path):
+    deck = _deck_with_include(tmp_path)
+    model = read_deck(deck)
+    for f in model.source.files:  # a whole-body deck's bytes are hundreds of MB
+        assert f.resident is None and f.line_starts is None and f.line_ends is None
+        assert f.size == f.path.stat().st_size
+    assert_roundtrip_identical(deck, tmp_path)
+    moved = model.with_coords(model.coords + 0.5)
+    write_deck(moved, tmp_path / "o" / "main.k")
+    np.testing.assert_allclose(read_deck(tmp_path / "o" / "main.k").coords, moved.coords)
+
+
+@pytest.mark.parametrize("change", ["same size", "longer", "shorter", "deleted"])
+def test_a_file_changed_on_disk_since_the_read_is_refused_and_nothing_written(
+    tmp_path, change
+):
+    from kneegui.errors import DeckError
+
+    deck = _deck_with_include(tmp_path)
+    model = read_deck(deck)
+    inc = tmp_path / "d" / "inc" / "a.k"
+    text = inc.read_bytes()
+    if change == "same size":  # the node block's offsets would still be in range: CRC-32 tells
+        inc.write_bytes(text.replace(b"1.000000", b"2.000000", 1))
+    elif change == "longer":
+        inc.write_bytes(b"$ edited\n" + text)
+    elif change == "shorter":
+        inc.write_bytes(text[:-5])
+    else:
+        inc.unlink()
+    out = tmp_path / "o" / "main.k"
+    message = "cannot read it again" if change == "deleted" else "changed on disk since it was read"
+    with pytest.raises(DeckError, match=message) as err:
+        write_deck(model.with_coords(model.coords + 1.0), out)
+    assert "a.k" in str(err.value)
+    assert not out.parent.exists() or not any(out.parent.iterdir())
