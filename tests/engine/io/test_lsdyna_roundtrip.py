@@ -522,9 +522,7 @@ def test_the_read_lets_the_bytes_go_and_the_write_reads_them_back(tmp_path):
 
 
 @pytest.mark.parametrize("change", ["same size", "longer", "shorter", "deleted"])
-def test_a_file_changed_on_disk_since_the_read_is_refused_and_nothing_written(
-    tmp_path, change
-):
+def test_a_file_changed_on_disk_since_the_read_is_refused_and_nothing_written(tmp_path, change):
     from kneegui.errors import DeckError
 
     deck = _deck_with_include(tmp_path)
