@@ -672,7 +672,7 @@ def smooth_mesh(
         inverted_after=int(np.count_nonzero(jac <= 0)),
         max_displacement=float(displacement.max()) if n_nodes else 0.0,
         seconds=time.perf_counter() - started,
-        inverted_out_of_reach=_inverted_out_of_reach(blocks, coords, free | sliding),
+        inverted_out_of_reach=_inverted_out_of_reach(blocks, coords, free | sliding, check_cancel),
     )
     return coords, report
 
@@ -865,9 +865,13 @@ def _batched_stage(
 
 
 def _inverted_out_of_reach(
-    blocks: Mapping[str, ElementBlock], coords: NDArray[np.float64], movable: NDArray[np.bool_]
+    blocks: Mapping[str, ElementBlock],
+    coords: NDArray[np.float64],
+    movable: NDArray[np.bool_],
+    check_cancel: Callable[[], None] | None = None,
 ) -> int:
-    """Inverted solid/quad elements with no movable node (unchanged by smoothing)."""
+    """Inverted solid/quad elements with no movable node (unchanged by smoothing);
+    ``check_cancel()`` before every chunk (a whole-body model: seconds in all)."""
     count = 0
     for etype in SMOOTHED_TYPES:
         block = blocks.get(etype)
@@ -876,6 +880,8 @@ def _inverted_out_of_reach(
         conn = block.conn[:, : CORNER_NODES[etype]]
         out = conn[~movable[conn].any(axis=1)]
         for start in range(0, len(out), 65536):
+            if check_cancel is not None:
+                check_cancel()
             jac, _ = corner_quality(coords[out[start : start + 65536]], etype)
             count += int(np.count_nonzero(jac <= 0))
     return count

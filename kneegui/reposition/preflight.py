@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from kneegui.errors import raise_if_cancelled
 from kneegui.kinematics.posing import BonePose
 from kneegui.model import Model
 from kneegui.quality.kernels import corner_jacobian
@@ -521,8 +522,10 @@ def _limits(
     i0: int,
     poses: Callable[[float], tuple[NDArray[np.float64], NDArray[np.float64]]],
     refine_steps: int,
+    check: Callable[[], None] = lambda: None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-    """First inverting flexion below and above ``angles[i0]`` of each element (NaN: none)."""
+    """First inverting flexion below and above ``angles[i0]`` of each element (NaN: none);
+    ``check()`` before each sampled angle."""
     n = len(points)
     at_rest = ~_valid(
         points,
@@ -534,6 +537,7 @@ def _limits(
     valid = np.empty((len(angles), n), dtype=bool)
     transforms = [poses(float(a)) for a in angles]
     for s, (rot, trans) in enumerate(transforms):
+        check()
         if s == i0:
             valid[s] = ~at_rest
             continue
@@ -613,7 +617,10 @@ def _incidence(
 
 
 def _coincident(
-    model: Model, labels: NDArray[np.int8], tolerance: float
+    model: Model,
+    labels: NDArray[np.int8],
+    tolerance: float,
+    check: Callable[[], None] = lambda: None,
 ) -> tuple[NDArray[np.int64], list[dict[str, Any]]]:
     used = np.zeros(model.n_nodes, dtype=bool)
     for block in model.blocks.values():
@@ -621,7 +628,10 @@ def _coincident(
     used_idx = np.flatnonzero(used)
     if len(used_idx) < 2:
         return np.zeros((0, 2), dtype=np.int64), []
-    pairs = cKDTree(model.coords[used_idx]).query_pairs(tolerance, output_type="ndarray")
+    tree = cKDTree(model.coords[used_idx])
+    check()
+    pairs = tree.query_pairs(tolerance, output_type="ndarray")
+    check()
     pairs = np.sort(used_idx[pairs.astype(np.int64)], axis=1) if len(pairs) else pairs
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))] if len(pairs) else pairs
@@ -662,6 +672,7 @@ def run_preflight(
     flexion_range_deg: tuple[float, float] = SUPPORTED_FLEXION_DEG,
     step_deg: float = SAMPLE_STEP_DEG,
     refine_steps: int = REFINE_STEPS,
+    cancel: Callable[[], bool] | None = None,
 ) -> Preflight:
     """Find the locked elements, coincident node pairs and movable region of a model.
 
@@ -682,11 +693,18 @@ def run_preflight(
         Sampling step (degrees) from the initial flexion outwards.
     refine_steps : int
         Bisection halvings of the bracket of each crossing.
+    cancel : callable, optional
+        Asked between the check's steps and element types (a whole-body model: seconds in
+        all); True raises :class:`~kneegui.errors.Cancelled`.
 
     Returns
     -------
     Preflight
     """
+
+    def check() -> None:
+        raise_if_cancelled(cancel, "pre-flight check cancelled")
+
     t0 = time.perf_counter()
     lo, hi = (float(v) for v in flexion_range_deg)
     initial = float(initial_flexion_deg)
@@ -719,6 +737,7 @@ def run_preflight(
         block = model.blocks.get(etype)
         if block is None or not len(block):
             continue
+        check()
         # the segments of each element's tied nodes; its free nodes, if any, may still be
         # unable to save it (:func:`_feasible`)
         mask = np.bitwise_or.reduce(bits[labels[block.conn]], axis=1) & ~bits[MOVABLE]
@@ -734,13 +753,14 @@ def run_preflight(
     keys = ("etype", "rows", "below", "above", "rest", "mask", "free")
     chunks: dict[str, list] = {k: [] for k in keys}
     for etype, (tied_rows, tied_mask) in candidates.items():
+        check()
         keep = moving_table[tied_mask]
         locked_rows, mask = tied_rows[keep], tied_mask[keep]
         if not len(locked_rows):
             continue
         conn = model.blocks[etype].conn[locked_rows]
         below, above, rest = _limits(
-            model.coords[conn], labels[conn], etype, angles, i0, poses, refine_steps
+            model.coords[conn], labels[conn], etype, angles, i0, poses, refine_steps, check
         )
         free = (labels[conn] == MOVABLE).sum(axis=1)
         # an element with a free node is locked only where it is proven unable to stay valid
@@ -787,10 +807,13 @@ def run_preflight(
     )
 
     tolerance = COINCIDENT_TOLERANCE * diagonal
-    pairs, joins = _coincident(model, labels, tolerance)
+    check()
+    pairs, joins = _coincident(model, labels, tolerance, check)
 
     movable_nodes = labels == MOVABLE
+    check()
     nodes, parts = _incidence(model, movable_nodes)
+    check()
     part_list, counts = np.unique(parts, return_counts=True)
     nodes_by_part = dict(zip(part_list.tolist(), counts.tolist(), strict=True))
     elements_by_part: dict[int, int] = {}
@@ -828,9 +851,10 @@ def run_preflight(
 _CACHE: weakref.WeakKeyDictionary[Repositioner, Preflight] = weakref.WeakKeyDictionary()
 
 
-def preflight_of(repositioner: Repositioner) -> Preflight:
+def preflight_of(repositioner: Repositioner, cancel: Callable[[], bool] | None = None) -> Preflight:
     """The pre-flight check of a repositioner's model and setup, run once and kept while the
-    repositioner lives (the pose report of every angle and the GUI share it)."""
+    repositioner lives (the pose report of every angle and the GUI share it); ``cancel`` as
+    for :func:`run_preflight` (a cancelled check is not kept)."""
     found = _CACHE.get(repositioner)
     if found is None:
         found = run_preflight(
@@ -838,6 +862,7 @@ def preflight_of(repositioner: Repositioner) -> Preflight:
             repositioner.groups,
             repositioner.bone_pose,
             repositioner.initial_flexion,
+            cancel=cancel,
         )
         _CACHE[repositioner] = found
     return found

@@ -464,3 +464,29 @@ def test_free_and_sliding_nodes_read_only_the_elements_around_them(soft_interfac
     expected_sliding[model.part_node_indices(fixed)] = False
     assert expected_sliding.sum() > 10
     np.testing.assert_array_equal(sliding, expected_sliding)
+
+
+def test_the_count_of_inverted_elements_out_of_reach_asks_to_cancel_per_chunk():
+    """It measures every element the smoothing cannot move: seconds on a whole-body model."""
+    from kneegui.meshopt.smoother import _inverted_out_of_reach
+    from kneegui.model import ElementBlock
+
+    cube = np.array(
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],
+        dtype=float,
+    )
+    coords = np.concatenate([cube, cube + np.array([2.0, 0.0, 0.0])])
+    coords[8:12, 2] = 2.0  # the second hex's bottom face above its top: inverted
+    blocks = {"hex8": ElementBlock("hex8", [1, 2], [1, 1], np.arange(16).reshape(2, 8))}
+    movable = np.zeros(16, dtype=bool)
+    asked = []
+    assert _inverted_out_of_reach(blocks, coords, movable, lambda: asked.append(1)) == 1
+    assert len(asked) == 1  # one chunk
+    movable[8] = True  # the inverted one can move: not counted
+    assert _inverted_out_of_reach(blocks, coords, movable) == 0
+
+    def stop() -> None:
+        raise Cancelled("smoothing cancelled")
+
+    with pytest.raises(Cancelled):
+        _inverted_out_of_reach(blocks, coords, np.zeros(16, dtype=bool), stop)

@@ -114,6 +114,30 @@ def test_locked_element_and_its_limits_on_two_bones(two_bones):
     assert len(pre.coincident_pairs) == 0
 
 
+def test_the_check_asks_to_cancel_between_its_steps_and_changes_nothing(two_bones):
+    from kneegui.errors import Cancelled
+
+    model, groups = two_bones
+    kwargs = {"flexion_range_deg": (-80.0, 150.0)}
+    asked = []
+    pre = run_preflight(
+        model, groups, _bone_pose, INITIAL, cancel=lambda: bool(asked.append(1)), **kwargs
+    )
+    plain = run_preflight(model, groups, _bone_pose, INITIAL, **kwargs)
+    assert pre.to_dict() | {"seconds": 0} == plain.to_dict() | {"seconds": 0}
+    # the element type twice, the coincident pairs' tree and query, the incidence, and one
+    # question per sampled angle of the locked element's limits
+    assert len(asked) >= 6
+    for stop_at in range(len(asked)):  # a True at any of the questions stops the check
+
+        def cancel(calls=[], stop_at=stop_at) -> bool:  # noqa: B006 - one list per question
+            calls.append(1)
+            return len(calls) > stop_at
+
+        with pytest.raises(Cancelled, match="pre-flight"):
+            run_preflight(model, groups, _bone_pose, INITIAL, cancel=cancel, **kwargs)
+
+
 def test_a_limit_beyond_the_range_is_none(two_bones):
     model, groups = two_bones
     pre = run_preflight(model, groups, _bone_pose, INITIAL, flexion_range_deg=(-10.0, 100.0))

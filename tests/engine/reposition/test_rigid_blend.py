@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from kneegui.model import ElementBlock
 from kneegui.reposition.rigid_blend import mesh_edges
@@ -35,6 +36,39 @@ def test_mesh_edges_are_the_unique_sorted_rows_with_collapsed_edges_dropped():
     assert got.dtype == np.int64 and got.shape == expected.shape
     np.testing.assert_array_equal(got, expected)
     assert not np.any(got[:, 0] == got[:, 1])
+
+
+def test_mesh_edges_sorted_in_pieces_are_the_same_array_and_ask_between_pieces(monkeypatch):
+    from kneegui.errors import Cancelled
+    from kneegui.reposition import rigid_blend
+
+    rng = np.random.default_rng(5)
+    n_nodes = 20_000
+    hexes = rng.integers(0, n_nodes, size=(4000, 8))
+    hexes[:30, 6] = hexes[:30, 5]
+    blocks = {"hex8": ElementBlock("hex8", np.arange(4000), np.zeros(4000), hexes)}
+    masks = {"hex8": rng.random(4000) < 0.8}
+    expected = _reference_edges(blocks, masks)
+    monkeypatch.setattr(rigid_blend, "EDGE_SORT_PIECE", 5000)
+    asked = []
+    got = mesh_edges(blocks, masks, lambda: bool(asked.append(1)))
+    np.testing.assert_array_equal(got, expected)
+    n_keys = sum(  # the edges that are not collapsed, duplicates included
+        int(np.count_nonzero(hexes[masks["hex8"]][:, a] != hexes[masks["hex8"]][:, b]))
+        for a, b in ELEMENT_EDGES["hex8"]
+    )
+    pieces = -(-n_keys // 5000)
+    assert pieces >= 5
+    assert len(asked) == 1 + 12 + pieces  # the type, each of its edges, each piece
+    np.testing.assert_array_equal(mesh_edges(blocks, masks), expected)  # no cancel: one sort
+    calls = []
+
+    def cancel_at_the_third_piece() -> bool:
+        calls.append(1)
+        return len(calls) == 1 + 12 + 3
+
+    with pytest.raises(Cancelled, match="edges"):
+        mesh_edges(blocks, masks, cancel_at_the_third_piece)
 
 
 def test_block_cg_gives_the_same_bits_with_any_number_of_threads():
