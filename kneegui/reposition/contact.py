@@ -393,7 +393,9 @@ class BoneContact:
         near = np.zeros(len(soft), dtype=bool)
         distances = []
         for segment, distance in bone_surfaces.items():
-            d, _ = distance.tree.query(coords[soft], distance_upper_bound=reach)
+            raise_if_cancelled(cancel, "bone contact set-up cancelled")
+            # every soft node of a whole-body model: seconds per bone on one thread
+            d, _ = distance.tree.query(coords[soft], distance_upper_bound=reach, workers=-1)
             found = np.isfinite(d)
             near |= found
             distances.append((segment, distance, found))

@@ -124,30 +124,36 @@ def shell_face_tetrahedra(
     virtual : (V, n_nodes) sparse matrix
         ``virtual @ coords`` are the virtual nodes' coordinates.
     """
-    # every face of the selected solids as a sorted, -1 padded 4-tuple, with its owner
-    keys, owners, owner_types = [], [], []
-    solid_types = [e for e in SOLID_FACES if e in blocks and e in solid_masks]
-    for t_index, etype in enumerate(solid_types):
-        block = blocks[etype]
-        rows = np.flatnonzero(solid_masks[etype])
-        for face in SOLID_FACES[etype]:
-            k = np.full((len(rows), 4), -1, dtype=np.int64)
-            k[:, : len(face)] = np.sort(block.conn[np.ix_(rows, list(face))], axis=1)
-            keys.append(np.sort(k, axis=1))
-            owners.append(rows)
-            owner_types.append(np.full(len(rows), t_index))
     shell_keys, shell_conn = [], []
+    on_shell = np.zeros(n_nodes, dtype=bool)
     for etype, mask in shell_masks.items():
         block = blocks.get(etype)
         if block is None:
             continue
         conn = block.conn[mask]
+        on_shell[conn.ravel()] = True
         k = np.full((len(conn), 4), -1, dtype=np.int64)
         k[:, : conn.shape[1]] = conn
         shell_keys.append(np.sort(k, axis=1))
         padded = np.full((len(conn), 4), -1, dtype=np.int64)
         padded[:, : conn.shape[1]] = conn
         shell_conn.append(padded)
+    # every face of the selected solids that could be a shell (all its nodes on shells: a
+    # whole-body model's knee region has millions of faces and a few thousand shells) as a
+    # sorted, -1 padded 4-tuple, with its owner
+    keys, owners, owner_types = [], [], []
+    solid_types = [e for e in SOLID_FACES if e in blocks and e in solid_masks]
+    for t_index, etype in enumerate(solid_types):
+        block = blocks[etype]
+        rows = np.flatnonzero(solid_masks[etype])
+        for face in SOLID_FACES[etype]:
+            nodes = block.conn[np.ix_(rows, list(face))]
+            kept = on_shell[nodes].all(axis=1)
+            k = np.full((int(np.count_nonzero(kept)), 4), -1, dtype=np.int64)
+            k[:, : len(face)] = np.sort(nodes[kept], axis=1)
+            keys.append(np.sort(k, axis=1))
+            owners.append(rows[kept])
+            owner_types.append(np.full(len(k), t_index))
     empty = (np.zeros((0, 4), dtype=np.int64), sp.csr_matrix((0, n_nodes)))
     if not keys or not shell_keys:
         return empty
