@@ -658,11 +658,13 @@ class ElasticRelaxation:
         x: NDArray[np.float64],
         nodes: NDArray[np.int64],
         transforms: Mapping[str, RigidTransform],
+        cancel: Callable[[], bool] | None = None,
     ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Constraints ``n . x_node >= offset`` for the given nodes near a bone, and each
         node's smallest margin ``depth - allowed depth`` over the bones (< 0: too deep; a lower
         bound where it is more than the contact band: those nodes are not measured again,
-        :class:`~kneegui.reposition.contact.DistanceMemo`)."""
+        :class:`~kneegui.reposition.contact.DistanceMemo`). ``cancel`` is asked before each
+        bone (the first call of an export measures every contact node: seconds at 1.76M)."""
         clearance, band = self.options.contact_clearance, self.options.contact_band
         out_nodes, normals, offsets = [], [], []
         nearest = np.full(len(nodes), np.inf)
@@ -671,6 +673,7 @@ class ElasticRelaxation:
         if self._attached_nb is not None:
             nb = self._attached_nb[np.searchsorted(self.contact_nodes, nodes)].tocsr()
         for name in self.bones:
+            raise_if_cancelled(cancel, "relaxation cancelled while measuring the contact")
             tr = transforms.get(name)
             if tr is None:
                 continue
@@ -786,7 +789,7 @@ class ElasticRelaxation:
         if len(self.free) == 0 or len(self.tets) == 0:
             return x, report, False
         use_contact = bool(self.bones) and transforms is not None
-        penetrating, report.deepest_penetration = self._penetrating(x, transforms)
+        penetrating, report.deepest_penetration = self._penetrating(x, transforms, cancel)
         raise_if_cancelled(cancel, "relaxation cancelled")
         t = time.perf_counter()
         if self.contour_order is not None:
@@ -1036,13 +1039,17 @@ class ElasticRelaxation:
         return free[self._reach(seed, rings)[free]]
 
     def _penetrating(
-        self, x: NDArray[np.float64], transforms: Mapping[str, RigidTransform] | None
+        self,
+        x: NDArray[np.float64],
+        transforms: Mapping[str, RigidTransform] | None,
+        cancel: Callable[[], bool] | None = None,
     ) -> tuple[NDArray[np.int64] | None, float]:
         """The contact nodes deeper in a bone than ``penetration_tolerance`` at ``x`` and the
-        deepest penetration (None and 0 without bones or transforms)."""
+        deepest penetration (None and 0 without bones or transforms); ``cancel`` is asked
+        before each bone."""
         if not self.bones or transforms is None or len(self.contact_nodes) == 0:
             return None, 0.0
-        _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms)
+        _, _, _, depth = self._contact_planes(x, self.contact_nodes, transforms, cancel)
         deep = self.contact_nodes[depth < -self.options.penetration_tolerance]
         return deep, float(max(0.0, -depth.min()))
 

@@ -337,6 +337,16 @@ def test_the_single_steps_of_seconds_on_a_whole_body_model_ask_to_cancel(
     with pytest.raises(Cancelled, match="region"):
         relaxation.degraded_region(pose, cancel=lambda: True)
 
+    bone = rep.bone_pose(90.0)
+    asked, count = counter()
+    deep = relaxation._penetrating(pose, bone.transforms, count)
+    assert len(asked) == len(relaxation.bones)  # one question per bone
+    reference = relaxation._penetrating(pose, bone.transforms)
+    np.testing.assert_array_equal(deep[0], reference[0])
+    assert deep[1] == reference[1]
+    with pytest.raises(Cancelled, match="contact"):
+        relaxation._penetrating(pose, bone.transforms, lambda: True)
+
     model = rep.model
     masks = {etype: np.ones(len(block), dtype=bool) for etype, block in model.blocks.items()}
     asked, count = counter()
