@@ -577,3 +577,55 @@ def test_rest_volumes_are_measured_when_asked_for_and_the_same_bits_as_the_whole
     assert 0 < volumes._known.sum() < len(whole)
     np.testing.assert_allclose(np.asarray(volumes), whole, rtol=1e-14, atol=0)
     np.testing.assert_allclose(volumes[np.arange(len(whole)) % 2 == 0], whole[::2], rtol=1e-14)
+
+
+def test_every_question_to_cancel_stops_the_optimisation_and_asking_changes_nothing(
+    block_model, monkeypatch
+):
+    """Questions between a round's set-up steps too (the planes, the weights, the narrowed
+    stage, the first evaluation): a True at any of them stops it."""
+    from kneegui.meshopt import quality_optimiser
+
+    model, coords = distorted_block(block_model)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(model.coords - 2.0) < 1.99, axis=1))
+    watched = interior[coords[interior, 0] > 2.2]
+    events = []
+
+    def keep_right(x):
+        events.append("planes")
+        return watched, np.tile([1.0, 0.0, 0.0], (len(watched), 1)), coords[watched, 0] - 0.01
+
+    def logged_lbfgs(*args, **kwargs):
+        events.append("round")
+        return minimize_lbfgs(*args, **kwargs)
+
+    minimize_lbfgs = quality_optimiser.minimize_lbfgs
+    monkeypatch.setattr(quality_optimiser, "minimize_lbfgs", logged_lbfgs)
+
+    def run(cancel=None):
+        return optimise_quality(
+            coords, model.blocks, interior, aims, constraints=keep_right, cancel=cancel
+        )[0]
+
+    plain = run()
+    events.clear()
+    asked = []
+    np.testing.assert_array_equal(run(lambda: bool(asked.append(1) or events.append("ask"))), plain)
+    # a question between fitting the planes and starting a round on them (the 1.76M demo:
+    # seconds), not only at the rounds' top and after each iteration
+    log = "".join({"planes": "p", "round": "r", "ask": "a"}[e] for e in events)
+    assert log.count("p") >= 2 and log.count("r") >= 2
+    assert "pr" not in log
+    rounds_and_iterations = len(asked)
+    assert rounds_and_iterations > 10
+    for stop_at in sorted({1, 2, 3, 4, 5, rounds_and_iterations // 2, rounds_and_iterations}):
+        calls = []
+
+        def cancel(calls=calls, stop_at=stop_at) -> bool:
+            calls.append(1)
+            return len(calls) >= stop_at
+
+        with pytest.raises(Cancelled):
+            run(cancel)
+        assert len(calls) == stop_at  # stopped at that very question
