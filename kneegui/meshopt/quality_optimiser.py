@@ -1259,10 +1259,12 @@ def optimise_quality(
     start_all = np.array(coords, dtype=np.float64, copy=True)
     x_all = start_all.copy()
     free_nodes = sorted_unique(np.asarray(free_nodes, dtype=np.int64))
+    check()
     whole = _Stage(blocks, start_all, free_nodes, aims, opt)
     pr0 = whole.pr
     if len(pr0.free) == 0:
         return x_all, QualityOptimisationReport(seconds=time.perf_counter() - t0)
+    check()
     j_before = _element_jacobians(pr0, x_all[pr0.nodes])
     c_before = _tet_collapses(pr0, x_all[pr0.nodes])
     if np.any(j_before <= 0):

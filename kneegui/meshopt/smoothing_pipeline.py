@@ -99,6 +99,7 @@ def smooth_posed_model(
         compute_quality(initial.coords, initial.blocks) if isinstance(initial, Model) else initial
     )
     degraded = degraded_elements(quality, initial_quality, threshold, tolerance)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     free = smoothing_free_nodes(posed, soft, fixed, degraded, opt.rings, opt.soft_interfaces)
     raise_if_cancelled(cancel, "smoothing cancelled")
     sliding = None

@@ -292,18 +292,29 @@ class NodeRows:
 
 
 def _pinned_corners(
-    tets: NDArray[np.int64], is_free: NDArray[np.bool_], segment_of: NDArray[np.int64]
+    tets: NDArray[np.int64],
+    is_free: NDArray[np.bool_],
+    segment_of: NDArray[np.int64],
+    cancel: Callable[[], bool] | None = None,
 ) -> NDArray[np.bool_]:
     """Corners with at most one free node whose other real nodes lie on two rigid segments or
-    more (virtual nodes count as free)."""
+    more (virtual nodes count as free); a chunk of :data:`CORNER_CHUNK` corners at a time,
+    ``cancel`` asked before each (a whole-body model's region: millions of corners)."""
     n = len(segment_of)
-    real = tets < n
-    seg = np.where(real, segment_of[np.minimum(tets, n - 1)], -1)
-    seg = np.where(is_free[tets], -1, seg)
-    on = seg >= 0
-    lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
-    hi = np.where(on, seg, -1).max(axis=1)
-    return (is_free[tets].sum(axis=1) <= 1) & on.any(axis=1) & (lo != hi)
+    out = np.zeros(len(tets), dtype=bool)
+    for start in range(0, len(tets), CORNER_CHUNK):
+        raise_if_cancelled(cancel, "relaxation set-up cancelled")
+        part = tets[start : start + CORNER_CHUNK]
+        real = part < n
+        seg = np.where(real, segment_of[np.minimum(part, n - 1)], -1)
+        seg = np.where(is_free[part], -1, seg)
+        on = seg >= 0
+        lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
+        hi = np.where(on, seg, -1).max(axis=1)
+        out[start : start + len(part)] = (
+            (is_free[part].sum(axis=1) <= 1) & on.any(axis=1) & (lo != hi)
+        )
+    return out
 
 
 def _free_midside_nodes(
@@ -459,7 +470,7 @@ class ElasticRelaxation:
         tets = tets[is_free[tets].any(axis=1)]
         self.pinned_corners = 0
         if segment_of is not None and len(tets):
-            pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64))
+            pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64), cancel)
             self.pinned_corners = int(pinned.sum())
             tets = tets[~pinned]
         usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets, cancel)
@@ -717,6 +728,7 @@ class ElasticRelaxation:
         """The foldover-free energy of the corners touching the nodes ``free`` (``cancel`` is
         asked while it is built)."""
         rows = self._node_rows.touching(free)
+        raise_if_cancelled(cancel, "relaxation cancelled while its energy was built")
         return FoldoverEnergy(
             self.tets[rows],
             self.inv_rest,
@@ -1137,7 +1149,9 @@ class ElasticRelaxation:
         order = self.contour_order
         t = time.perf_counter()
         crossing = None if order is None else order.crossing(x)
+        raise_if_cancelled(cancel, "relaxation cancelled")
         held = self.inverted_element_nodes(x) if options.hold_inverted else None
+        raise_if_cancelled(cancel, "relaxation cancelled")
         if held is not None and len(held) and self._flat_at_rest():
             held = None  # flat or inverted in the deck already: the error below names that
         if held is not None and len(held):
@@ -1161,6 +1175,7 @@ class ElasticRelaxation:
                 x, self.blocks, self.aims, self.free, self.options.rings, seeds=crossing
             )
         region_seconds = time.perf_counter() - t
+        raise_if_cancelled(cancel, "relaxation cancelled")
         out, report = x, None
         if len(free):
             contact = self.contact_nodes[np.isin(self.contact_nodes, free)]

@@ -770,3 +770,25 @@ def test_inverted_element_nodes_in_blocks_are_those_of_one_block(monkeypatch):
     monkeypatch.setattr(relax_module, "CORNER_CHUNK", 7)
     assert len(whole) > 8
     np.testing.assert_array_equal(relax.inverted_element_nodes(tangled), whole)
+
+
+def test_pinned_corners_in_chunks_are_the_same_and_ask_to_cancel(monkeypatch):
+    """Corners tied to two bones by all but one node: found a chunk at a time on a whole-body
+    region, the same as at once."""
+    relax = relax_module
+    rng = np.random.default_rng(11)
+    n = 400
+    segment_of = rng.integers(-1, 3, size=n)  # -1: not on a bone
+    is_free = np.zeros(n + 50, dtype=bool)
+    is_free[rng.choice(n, 120, replace=False)] = True
+    is_free[n:] = True  # virtual nodes count as free
+    tets = rng.integers(0, n + 50, size=(5000, 4))
+    whole = relax._pinned_corners(tets, is_free, segment_of)
+    assert 0 < whole.sum() < len(whole)
+    monkeypatch.setattr(relax, "CORNER_CHUNK", 700)
+    asked = []
+    chunked = relax._pinned_corners(tets, is_free, segment_of, lambda: bool(asked.append(1)))
+    np.testing.assert_array_equal(chunked, whole)
+    assert len(asked) == -(-5000 // 700)
+    with pytest.raises(Cancelled):
+        relax._pinned_corners(tets, is_free, segment_of, lambda: True)
