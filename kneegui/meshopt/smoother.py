@@ -336,8 +336,13 @@ class _Neighbourhood:
 
 
 def _build_neighbourhood(
-    blocks: Mapping[str, ElementBlock], movable: NDArray[np.int64], n_nodes: int
+    blocks: Mapping[str, ElementBlock],
+    movable: NDArray[np.int64],
+    n_nodes: int,
+    check_cancel: Callable[[], None] = lambda: None,
 ) -> _Neighbourhood:
+    """The elements, handles and edge neighbours of the movable nodes; ``check_cancel()``
+    between the steps (a whole-body model's smoothing region: a second in all at 1M)."""
     is_movable = np.zeros(n_nodes, dtype=bool)
     is_movable[movable] = True
     compressed = np.full(n_nodes, -1, dtype=np.int64)
@@ -348,6 +353,7 @@ def _build_neighbourhood(
         block = blocks.get(etype)
         if block is None or len(block) == 0:
             continue
+        check_cancel()
         k = CORNER_NODES[etype]
         conn = block.conn[:, :k]
         touching = is_movable[conn].any(axis=1)
@@ -374,6 +380,7 @@ def _build_neighbourhood(
         handle_row[offsets[ti] : offsets[ti + 1]] = np.arange(offsets[ti + 1] - offsets[ti])
     pn = np.concatenate(pair_node) if pair_node else np.zeros(0, dtype=np.int64)
     ph = np.concatenate(pair_handle) if pair_handle else np.zeros(0, dtype=np.int64)
+    check_cancel()
     order = np.lexsort((ph, pn))
     node_ptr = np.searchsorted(pn[order], np.arange(len(movable) + 1))
     # edge neighbours of the movable nodes
@@ -382,6 +389,7 @@ def _build_neighbourhood(
     src = np.concatenate([ea, eb])
     dst = np.concatenate([eb, ea])
     keep = is_movable[src]
+    check_cancel()
     pairs = unique_pairs(compressed[src[keep]], dst[keep], n_nodes)
     nbr_ptr = np.searchsorted(pairs[:, 0], np.arange(len(movable) + 1))
     return _Neighbourhood(
@@ -570,7 +578,9 @@ def smooth_mesh(
             basis[int(node)] = np.stack([t1, np.cross(n, t1)], 1)  # (3, 2)
     movable = np.flatnonzero(free | sliding)
     raise_if_cancelled(cancel, "smoothing cancelled")
-    nb = _build_neighbourhood(blocks, movable, n_nodes)
+    nb = _build_neighbourhood(
+        blocks, movable, n_nodes, lambda: raise_if_cancelled(cancel, "smoothing cancelled")
+    )
     raise_if_cancelled(cancel, "smoothing cancelled")
     n_mov = len(movable)
     all_handles = np.arange(nb.offset[-1])
@@ -750,6 +760,7 @@ def _laplacian_stage(
             group = full_group[working[full_group]]
             if len(group) == 0:
                 continue
+            check_cancel()  # a sweep over a whole-body model's region: a second at 1M
             nodes = st.movable[group]
             nbr_idx, owner = _csr_gather(nb.nbr_ptr, nb.nbr, group)
             counts = np.bincount(owner, minlength=len(group))

@@ -490,3 +490,33 @@ def test_the_count_of_inverted_elements_out_of_reach_asks_to_cancel_per_chunk():
 
     with pytest.raises(Cancelled):
         _inverted_out_of_reach(blocks, coords, np.zeros(16, dtype=bool), stop)
+
+
+def test_the_neighbourhood_build_and_each_colour_of_a_sweep_ask_to_cancel(block_model):
+    from kneegui.meshopt.smoother import _build_neighbourhood
+
+    model = block_model(6, 6, 6)
+    movable = np.flatnonzero(smoothing_free_nodes(model, [2], [1]))
+    asked = []
+    nb = _build_neighbourhood(model.blocks, movable, model.n_nodes, lambda: asked.append(1))
+    plain = _build_neighbourhood(model.blocks, movable, model.n_nodes)
+    assert len(asked) >= 3  # each element type, the handles' sort, the edge neighbours
+    for name in ("offset", "node_ptr", "node_handles", "nbr_ptr", "nbr"):
+        np.testing.assert_array_equal(getattr(nb, name), getattr(plain, name))
+
+    twisted = _swirl(block_model(8, 8, 8), 2.0, 2.5)
+    free = smoothing_free_nodes(twisted, [2], [1])
+    polls = []
+    out, report = smooth_mesh(twisted, None, free, cancel=lambda: bool(polls.append(1)))
+    np.testing.assert_array_equal(out, smooth_mesh(twisted, None, free)[0])
+    assert len(polls) > 4 * report.stage1_sweeps  # several colours per Laplacian sweep
+    for stop_at in sorted({1, 3, len(polls) // 3, len(polls) // 2, len(polls)}):
+        calls = []
+
+        def cancel(calls=calls, stop_at=stop_at) -> bool:
+            calls.append(1)
+            return len(calls) >= stop_at
+
+        with pytest.raises(Cancelled):
+            smooth_mesh(twisted, None, free, cancel=cancel)
+        assert len(calls) == stop_at
