@@ -38,6 +38,8 @@ from kneegui.topology import sorted_unique
 
 #: Points per chunk of a threaded :meth:`BoneSurfaceDistance.query`.
 QUERY_CHUNK = 2048
+#: Chunks between two questions to a :meth:`BoneSurfaceDistance.query`'s ``cancel``.
+QUERY_WAVE = 64
 
 
 def _incident(triangles: NDArray[np.int64], nodes: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -195,7 +197,10 @@ class BoneSurfaceDistance:
         return np.all((p >= self.lower) & (p <= self.upper), axis=1)
 
     def query(
-        self, p: NDArray[np.float64], threads: int | None = None
+        self,
+        p: NDArray[np.float64],
+        threads: int | None = None,
+        cancel: Callable[[], bool] | None = None,
     ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """For points (M, 3) in the rest frame: signed distance (M,) (+ outside), closest surface
         point (M, 3), unit outward (pseudo-)normal there (M, 3), and the distance to the nearest
@@ -206,16 +211,24 @@ class BoneSurfaceDistance:
         or vertex one face's normal alone can give the wrong side). Many points are split into
         chunks of :data:`QUERY_CHUNK` measured on ``threads`` threads (default: every core, at
         most 8); each point's result is worked out on its own, so it does not depend on the
-        thread count.
+        thread count. With ``cancel``, it is asked before every :data:`QUERY_WAVE` chunks (a
+        whole-body model's contact nodes: seconds per bone); True raises
+        :class:`~kneegui.errors.Cancelled`.
         """
         p = np.asarray(p, dtype=np.float64)
         threads = threads or min(os.cpu_count() or 1, 8)
-        if threads > 1 and len(p) >= 2 * QUERY_CHUNK:
-            starts = range(0, len(p), QUERY_CHUNK)
-            with ThreadPoolExecutor(threads) as pool:
-                parts = list(pool.map(lambda s: self._query(p[s : s + QUERY_CHUNK]), starts))
-            return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
-        return self._query(p)
+        if len(p) < 2 * QUERY_CHUNK or (threads == 1 and cancel is None):
+            return self._query(p)
+        starts = list(range(0, len(p), QUERY_CHUNK))
+        parts = []
+        with ThreadPoolExecutor(threads) as pool:
+            for wave in range(0, len(starts), QUERY_WAVE):
+                raise_if_cancelled(cancel, "cancelled while measuring the distance to a bone")
+                parts += pool.map(
+                    lambda s: self._query(p[s : s + QUERY_CHUNK]),
+                    starts[wave : wave + QUERY_WAVE],
+                )
+        return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
 
     def _query(self, p: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         node_distance, k = self.tree.query(p)
@@ -487,8 +500,8 @@ class BoneContact:
     ) -> int:
         """Push candidates that came closer to a bone than allowed back out, spread the push
         smoothly into the free soft tissue; in place. Returns the number of nodes pushed.
-        ``cancel()`` is asked before each bone (True raises :class:`kneegui.errors.Cancelled`,
-        nothing moved) and during the spreading's solve on a whole-body model (``positions``
+        ``cancel()`` is asked before and during each bone's measure (True raises
+        :class:`kneegui.errors.Cancelled`, nothing moved) and during the spreading's solve on a whole-body model (``positions``
         then partly moved)."""
         if len(self.candidates) == 0:
             return 0
@@ -505,7 +518,9 @@ class BoneContact:
             local = t.inverse().apply(p + push)
             depth = np.full(len(p), np.inf)
             q = np.zeros_like(p)
-            measured, q[srf.rows], _, node_distance = srf.distance.query(local[srf.rows])
+            measured, q[srf.rows], _, node_distance = srf.distance.query(
+                local[srf.rows], cancel=cancel
+            )
             depth[srf.rows] = measured
             bad = np.zeros(len(p), dtype=bool)
             bad[srf.rows] = (node_distance < self.reach) & (measured < srf.floor[srf.rows])

@@ -336,3 +336,29 @@ def test_the_push_measures_each_bone_only_where_it_holds_a_clearance(small_repos
     every = mapped.copy()
     assert contact.resolve(every, bone.transforms) == pushed
     np.testing.assert_allclose(fast, every, rtol=0, atol=1e-9)
+
+
+def test_a_long_distance_query_asks_to_cancel_per_wave_and_gives_the_same_values(monkeypatch):
+    """A whole-body model's contact nodes are measured against a bone for seconds: the query
+    asks between waves of chunks, on one thread or many, without changing a value."""
+    from kneegui.errors import Cancelled
+    from kneegui.reposition import contact
+
+    monkeypatch.setattr(contact, "QUERY_CHUNK", 50)
+    monkeypatch.setattr(contact, "QUERY_WAVE", 3)
+    surface = BoneSurfaceDistance(CUBE[TRIANGLES])
+    points = np.random.default_rng(2).uniform(-5.0, 15.0, (1000, 3))
+    whole = surface._query(points)  # every point at once
+    waves = -(-(1000 // 50) // 3)
+    for threads in (1, 2, 3):
+        asked = []
+        got = surface.query(
+            points, threads=threads, cancel=lambda asked=asked: bool(asked.append(1))
+        )
+        assert len(asked) == waves
+        for a, b in zip(got, whole, strict=True):
+            np.testing.assert_array_equal(a, b)
+        with pytest.raises(Cancelled, match="distance"):
+            surface.query(points, threads=threads, cancel=lambda: True)
+    for a, b in zip(surface.query(points, threads=2), whole, strict=True):
+        np.testing.assert_array_equal(a, b)
