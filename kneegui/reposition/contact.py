@@ -501,8 +501,8 @@ class BoneContact:
         """Push candidates that came closer to a bone than allowed back out, spread the push
         smoothly into the free soft tissue; in place. Returns the number of nodes pushed.
         ``cancel()`` is asked before and during each bone's measure (True raises
-        :class:`kneegui.errors.Cancelled`, nothing moved) and during the spreading's solve on a whole-body model (``positions``
-        then partly moved)."""
+        :class:`kneegui.errors.Cancelled`, nothing moved) and during the spreading's solve on
+        a whole-body model (``positions`` then partly moved)."""
         if len(self.candidates) == 0:
             return 0
         p = positions[self.candidates]
