@@ -334,15 +334,20 @@ def test_moved_nodes_change_only_coordinate_fields(tmp_path):
     assert "       6" in text and "             0.0             1.0       7       3" in text
 
 
-def test_flatten_inlines_includes(tmp_path):
+def _deck_with_include(tmp_path: Path, include: str = "inc/a.k") -> Path:
+    """``d/main.k`` with one hex whose nodes are in the include ``d/<include>``."""
     write(
         tmp_path,
         "d/main.k",
-        "*KEYWORD\n*INCLUDE\na.k\n" + part_cards(1) + "*ELEMENT_SOLID\n"
+        f"*KEYWORD\n*INCLUDE\n{include}\n" + part_cards(1) + "*ELEMENT_SOLID\n"
         "       1       1       1       2       3       4       5       6       7       8\n*END\n",
     )
-    write(tmp_path, "d/a.k", "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*END\n")
-    model = read_deck(tmp_path / "d" / "main.k")
+    write(tmp_path, f"d/{include}", "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*END\n")
+    return tmp_path / "d" / "main.k"
+
+
+def test_flatten_inlines_includes(tmp_path):
+    model = read_deck(_deck_with_include(tmp_path, "a.k"))
     moved = model.with_coords(model.coords * 2)
     written = write_deck(moved, tmp_path / "flat" / "one.k", flatten=True)
     assert written == [tmp_path / "flat" / "one.k"]
@@ -496,17 +501,6 @@ def test_a_cancelled_write_leaves_nothing_and_an_uncancelled_one_the_same_bytes(
         with pytest.raises(Cancelled):
             write_deck(moved, target, cancel=cancel)
         assert not target.parent.exists() or list(target.parent.iterdir()) == []
-
-
-def _deck_with_include(tmp_path: Path) -> Path:
-    write(
-        tmp_path,
-        "d/main.k",
-        "*KEYWORD\n*INCLUDE\ninc/a.k\n" + part_cards(1) + "*ELEMENT_SOLID\n"
-        "       1       1       1       2       3       4       5       6       7       8\n*END\n",
-    )
-    write(tmp_path, "d/inc/a.k", "*KEYWORD\n*NODE\n" + fixed_nodes(CUBE) + "*END\n")
-    return tmp_path / "d" / "main.k"
 
 
 def test_the_read_lets_the_bytes_go_and_the_write_reads_them_back(tmp_path):
