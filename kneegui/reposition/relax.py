@@ -63,6 +63,7 @@ from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
+from kneegui.reposition.midside import midside_edges
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
 from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, SOLID_FACES, sorted_unique
 
@@ -74,9 +75,6 @@ __all__ = [
 ]
 
 ProgressCallback = Callable[[float, str], None]
-
-#: The mid-side nodes of a 10-node tet (local index) and the corners of their edges.
-TET10_MIDSIDE = {4: (0, 1), 5: (1, 2), 6: (2, 0), 7: (0, 3), 8: (1, 3), 9: (2, 3)}
 
 #: Where the virtual apex of a shell's tetrahedra sits, from the shell's centroid (0) to the
 #: centroid of the solid it covers (1).
@@ -324,17 +322,9 @@ def _free_midside_nodes(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Mid-side nodes of the 10-node tets among ``free`` whose edge has a free corner, and the
     two corner nodes of each one's edge ((M,), (M, 2))."""
-    block = None if blocks is None else blocks.get("tet10")
-    if block is None or len(block) == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
-    conn = block.conn
-    mid = conn[:, list(TET10_MIDSIDE)].ravel()
-    ends = conn[:, [list(e) for e in TET10_MIDSIDE.values()]].reshape(-1, 2)
     requested = np.zeros(len(is_free), dtype=bool)
     requested[free] = True
-    keep = requested[mid] & is_free[ends].any(axis=1)
-    mid, first = np.unique(mid[keep], return_index=True)
-    return mid.astype(np.int64), ends[keep][first].astype(np.int64)
+    return midside_edges(None if blocks is None else blocks.get("tet10"), requested, is_free)
 
 
 def _distance_gradient(
@@ -552,6 +542,7 @@ class ElasticRelaxation:
         # 10-node tets: the energy and the quality optimisation see their corner tetrahedra only;
         # a free mid-side node sits where it sat at rest relative to its edge's ends
         self._midside, self._midside_ends = _free_midside_nodes(blocks, self.is_free, free)
+        self._midside_depth: dict[str, NDArray[np.float64]] = {}
         self.initial_quality = initial_quality
         self.is_beyond = np.zeros(n, dtype=bool)
         if beyond is not None:
@@ -712,6 +703,11 @@ class ElasticRelaxation:
             out_nodes.append(np.flatnonzero(near))
             normals.append(n_world)
             offsets.append(np.einsum("ij,ij->i", n_world, p_world) + floor[near])
+            if len(self._midside):
+                rows, n_chord, off_chord = self._chord_planes(x, nodes, name, tr, band)
+                out_nodes.append(rows)
+                normals.append(n_chord)
+                offsets.append(off_chord)
         if not out_nodes:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), nearest
         return (
@@ -720,6 +716,67 @@ class ElasticRelaxation:
             np.concatenate(offsets),
             nearest,
         )
+
+    def _chord_planes(
+        self,
+        x: NDArray[np.float64],
+        nodes: NDArray[np.int64],
+        name: str,
+        tr: RigidTransform,
+        band: float,
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Constraints on the corner nodes of 10-node tet edges near bone ``name``: the edge's
+        mid-side node, carried with it (:meth:`carry_midside`), no deeper inside the bone than
+        at rest or than its surface. Rows index ``nodes``.
+
+        The corner contact alone holds the corners out of a bone, and a corner slides along it:
+        around a bone's rim, an edge between two corners lying on it cut up to 0.47 edge lengths
+        deep into the tibia (the coarse 10-node demo at 90 deg), and its mid-side node put back
+        on the surface bent the edge that far (the gate's mid-side normal offset). Each corner
+        of such an edge among ``nodes`` gets the plane at its current position moved out by the
+        depth the edge's middle must gain (each may give up the margin the middle has, when it
+        has one): if both keep theirs, so does the middle. The planes are refitted every round,
+        like the corners' own."""
+        slot = np.searchsorted(nodes, self._midside_ends)
+        slot = np.minimum(slot, len(nodes) - 1)
+        listed = nodes[slot] == self._midside_ends  # (M, 2)
+        edges = np.flatnonzero(listed.any(axis=1))
+        empty = np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+        if len(edges) == 0:
+            return empty
+        ends = self._midside_ends[edges]
+        offset = self.rest[self._midside[edges]] - self.rest[ends].mean(axis=1)
+        local = tr.inverse().apply(x[ends].mean(axis=1) + offset)
+        boxed = np.flatnonzero(self.bones[name].in_box(local))
+        depth, _, normal, _ = self.bones[name].query(local[boxed])
+        near = depth < band
+        if not near.any():
+            return empty
+        edges, boxed = edges[boxed[near]], boxed[near]
+        floor = np.minimum(self._midside_rest_depth(name)[edges], 0.0)
+        need = floor - depth[near]  # > 0: the middle must move out this far
+        n = tr.apply_vector(normal[near])
+        rows, normals, offsets = [], [], []
+        for k in range(2):
+            keep = listed[edges, k]
+            corner = self._midside_ends[edges[keep], k]
+            rows.append(slot[edges[keep], k])
+            normals.append(n[keep])
+            offsets.append(np.einsum("ij,ij->i", n[keep], x[corner]) + need[keep])
+        return np.concatenate(rows), np.concatenate(normals), np.concatenate(offsets)
+
+    def _midside_rest_depth(self, name: str) -> NDArray[np.float64]:
+        """Each free mid-side node's signed distance from bone ``name`` at rest (measured
+        once; a coarse tet's edge between two nodes on a curved bone may cut into it in the
+        deck itself)."""
+        if name not in self._midside_depth:
+            surface = self.bones[name]
+            depth = np.full(len(self._midside), np.inf)
+            p = self.rest[self._midside]
+            boxed = surface.in_box(p)
+            depth[boxed] = surface.query(p[boxed])[0]
+            self._midside_depth[name] = depth
+        return self._midside_depth[name]
 
     # ------------------------------------------------------------------ solve
     def energy(

@@ -39,9 +39,9 @@ from kneegui.reposition.bone_overlap import BoneOverlap, BoneOverlapCheck
 from kneegui.reposition.checks import surface_triangles
 from kneegui.reposition.contact import BoneContact, BoneDepthGuard, BoneSurfaceDistance
 from kneegui.reposition.embedding import Embedding, embed_nodes
+from kneegui.reposition.midside import TET10_MIDSIDE, MidsideNodes
 from kneegui.reposition.patella_tracking import PatellaSeating
 from kneegui.reposition.relax import (
-    TET10_MIDSIDE,
     ElasticRelaxation,
     RelaxedRegion,
     RelaxOptions,
@@ -406,6 +406,10 @@ class Repositioner:
         self.relaxation: ElasticRelaxation | None = None
         self._overlap_check: BoneOverlapCheck | None = None
         self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
+        soft = np.zeros(model.n_nodes, dtype=bool)
+        soft[self.groups.soft] = True
+        # 10-node tets: every stage places mid-side nodes one by one; they end on their edges
+        self._midside = MidsideNodes(model.blocks.get("tet10"), soft, model.coords)
         self._order_contours: SkinContours | None = None  # for blend: the relaxation's order
         self._initial_quality: QualityResult | None = None  # the smoothing's reference
         self._quality_memo: tuple[NDArray[np.float64], QualityResult] | None = None
@@ -790,6 +794,7 @@ class Repositioner:
             t4 = time.perf_counter()
             self._contact.resolve(out, tr)
             timings["contact"] = time.perf_counter() - t4
+        out = self._midside.straighten(out)
         relax_report = None
         if self.options.relax if relax is None else relax:
             t5 = time.perf_counter()
@@ -891,7 +896,23 @@ class Repositioner:
                 self._relax_contact.resolve(coords, bone.transforms, cancel)
             check("finding the region to relax")
         region = RelaxedRegion(relaxation, bone.transforms, self._smoothing_stage(bone))
-        return improve_region(coords, region, options, progress, cancel)
+        coords, report = improve_region(coords, region, options, progress, cancel)
+        if len(self._midside):
+            coords = self._midside_on_edges(coords, bone)
+            report = replace(report, relaxed=self._midside_on_edges(report.relaxed, bone))
+        return coords, report
+
+    def _midside_on_edges(self, coords: NDArray[np.float64], bone: BonePose) -> NDArray[np.float64]:
+        """``coords`` with the mid-side nodes of the 10-node tets on their edges as at rest and
+        out of the bones beyond the in-bone check's tolerance
+        (:class:`~kneegui.reposition.midside.MidsideNodes`)."""
+        size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
+        return self._midside.out_of_bones(
+            self._midside.straighten(coords),
+            self._bone_surfaces(),
+            bone.transforms,
+            TISSUE_IN_BONE_TOLERANCE * size,
+        )
 
     def _smoothing_stage(self, bone: BonePose):
         """The chain's smoothing for a pose: the soft tissue but the skin moves, bones, fixed

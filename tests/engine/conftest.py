@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from itertools import product
+
 import numpy as np
 import pytest
+from scipy.spatial import ConvexHull
 
 from kneegui.model import ElementBlock, Model, Part
 from kneegui.topology import HEX_REFERENCE_COORDS
@@ -88,3 +91,20 @@ REFERENCE_SHAPES: dict[str, list[tuple[float, float, float]]] = {
 def reference_shape():
     """``reference_shape(etype)``: an undistorted element's node coordinates (k, 3)."""
     return lambda etype: np.array(REFERENCE_SHAPES[etype], dtype=float)
+
+
+def _box_triangles(lo, hi) -> np.ndarray:
+    """(12, 3, 3) outward triangles of the axis-aligned box from ``lo`` to ``hi``."""
+    points = np.array(list(product(*zip(lo, hi, strict=True))), dtype=float)
+    tris = points[ConvexHull(points).simplices]
+    centre = points.mean(axis=0)
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    flip = np.einsum("ij,ij->i", normal, tris.mean(axis=1) - centre) < 0
+    tris[flip] = tris[flip][:, [0, 2, 1]]
+    return tris
+
+
+@pytest.fixture
+def box_surface():
+    """``box_surface(lo, hi)``: (12, 3, 3) outward triangles of an axis-aligned box (a bone)."""
+    return _box_triangles

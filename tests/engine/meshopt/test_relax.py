@@ -354,23 +354,7 @@ def test_free_midside_nodes_of_tet10_follow_their_edge():
     np.testing.assert_allclose(out[7], (moved[0] + moved[3]) / 2)
 
 
-def _box_surface(lo, hi) -> np.ndarray:
-    """(12, 3, 3) outward triangles of an axis-aligned box."""
-    from itertools import product
-
-    from scipy.spatial import ConvexHull
-
-    points = np.array(list(product(*zip(lo, hi, strict=True))), dtype=float)
-    hull = ConvexHull(points)
-    tris = points[hull.simplices]
-    centre = points.mean(axis=0)
-    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    flip = np.einsum("ij,ij->i", normal, tris.mean(axis=1) - centre) < 0
-    tris[flip] = tris[flip][:, [0, 2, 1]]
-    return tris
-
-
-def test_midside_nodes_inside_a_bone_go_back_to_its_surface():
+def test_midside_nodes_inside_a_bone_go_back_to_its_surface(box_surface):
     """Contact holds a 10-node tet's corners out of a bone, but the straight edge between two
     corners lying on a convex bone cuts into it: a free mid-side node inside the posed bone is
     put back on its surface; the others and the corners stay."""
@@ -378,7 +362,7 @@ def test_midside_nodes_inside_a_bone_go_back_to_its_surface():
     edges = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
     rest = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
     block = ElementBlock("tet10", np.array([1]), np.array([1]), np.arange(10)[None, :])
-    bone = _box_surface((-10.0, -10.0, -10.0), (0.0, 10.0, 10.0))  # its face x = 0 outward
+    bone = box_surface((-10.0, -10.0, -10.0), (0.0, 10.0, 10.0))  # its face x = 0 outward
     relax = ElasticRelaxation(
         rest,
         corner_tetrahedra({"tet10": block}),
@@ -477,7 +461,7 @@ def test_an_attempt_that_stops_freeing_corners_goes_on_to_the_restart():
 
 
 def test_the_quality_stage_brings_tissue_out_of_a_bone_around_elements_left_inverted(
-    monkeypatch,
+    monkeypatch, box_surface
 ):
     """Two held nodes of one hex swapped: that hex and its neighbours stay inverted whatever
     the free nodes do, so the untangling never ends untangled and never stiffens its bone
@@ -493,7 +477,7 @@ def test_the_quality_stage_brings_tissue_out_of_a_bone_around_elements_left_inve
         coords,
         corner_tetrahedra(blocks, {"hex8": np.ones(len(blocks["hex8"].ids), bool)}),
         free,
-        bones={"tibia": _box_surface(lo, hi)},
+        bones={"tibia": box_surface(lo, hi)},
         blocks=blocks,
         aims=quality_aims(compute_quality(coords, blocks), blocks),
     )

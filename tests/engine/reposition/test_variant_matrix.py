@@ -24,12 +24,12 @@ import pytest
 from kneegui import demo
 from kneegui.model import Model
 from kneegui.quality import compute_quality
-from kneegui.quality.summary import GATED_TET_METRICS, summarize_quality
+from kneegui.quality.summary import GATE_JACOBIAN_TOLERANCE, GATED_TET_METRICS, summarize_quality
 from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.checks import penetrating, surface_triangles
+from kneegui.reposition.midside import TET10_MIDSIDE
 from kneegui.reposition.pipeline import pose_model
 from kneegui.reposition.preflight import preflight_of
-from kneegui.reposition.relax import TET10_MIDSIDE
 from kneegui.setup import load_setup
 
 ANGLES = (0.0, 30.0, 60.0, 90.0, 120.0)
@@ -87,6 +87,9 @@ class Cell:
     inverted_movable: int
     inverted_locked: int
     in_bone: int
+    #: of them, nodes not as deep in a bone in the deck itself (a coarse tet's edge between
+    #: two nodes on a curved bone, and its mid-side node, may cut into it at rest)
+    in_bone_beyond_rest: int
     p95_pct: float
     worst_jacobian: float
     initial_worst_jacobian: float
@@ -109,10 +112,14 @@ def export_cell(variant: Variant, rep: Repositioner, angle: float) -> Cell:
     interior = np.concatenate([rep.groups.flesh, rep.groups.band])
     ml = rep.axes.fe_axis.direction
     inside = np.zeros(len(interior), dtype=bool)
+    inside_at_rest = np.zeros(len(interior), dtype=bool)
     for role in ("femur", "tibia", "fibula", "patella"):
         tris = surface_triangles(model, setup.parts_of(role), shells=False)
         if len(tris):
-            inside |= penetrating(coords[interior], coords, tris, ml, IN_BONE_MM * variant.unit)
+            depth = IN_BONE_MM * variant.unit
+            inside |= penetrating(coords[interior], coords, tris, ml, depth)
+            rest = model.coords
+            inside_at_rest |= penetrating(rest[interior], rest, tris, ml, depth)
     report = posed.report
     initial_q = compute_quality(model.coords, model.blocks)
     summary = summarize_quality(posed.model, q, initial=initial_q)
@@ -129,6 +136,7 @@ def export_cell(variant: Variant, rep: Repositioner, angle: float) -> Cell:
         inverted_movable=movable,
         inverted_locked=locked_n,
         in_bone=int(inside.sum()),
+        in_bone_beyond_rest=int((inside & ~inside_at_rest).sum()),
         p95_pct=float(report["volume_change"]["soft_element_p95_abs_pct"]),
         worst_jacobian=float(q.worst_jacobian()),
         initial_worst_jacobian=float(initial_q.worst_jacobian()),
@@ -169,8 +177,10 @@ def cells(repositioners):
 #: default run to keep CI within its budget; ``pytest -m expensive`` runs them).
 #: (the coarse hex demo at 0 deg: the pass beyond the relaxed region, 5 December; the mixed
 #: demo at 90 deg: its settling pushed a tet's aspect past the initial worst, 13.54 against
-#: 13.46, until gate rounds followed the settling, 5 December)
-DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0), ("hex", 0.0), ("mixed", 90.0)}
+#: 13.46, until gate rounds followed the settling, 5 December; the 10-node tet demo at 0 deg:
+#: its mid-side nodes pushed along their edges failed the gate until they left the bones at
+#: right angles to their edges and the edges got contact planes, 6 December)
+DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0), ("hex", 0.0), ("mixed", 90.0), ("tet10", 0.0)}
 #: Cells measured to miss a target, with what was measured (kept visible as expected failures
 #: until the engine reaches them; docs/repositioning.md, known limits).
 KNOWN_MISSES = {
@@ -183,16 +193,14 @@ KNOWN_MISSES = {
     ("welded", 0.0, "quality"): "worst corner Jacobian 0.225 against the initial 0.330: the "
     "four elements below 0.330 are locked (every node tied to femur or tibia; coarse demo, "
     "5 December)",
-    ("tet10", 0.0, "quality"): "the corner tets meet every tet measure, but mid-side nodes sit "
-    "0.41 edge lengths off their edges (against 0; coarse 10-node tet demo, 5 December)",
     ("hex-flexed0", 90.0, "export"): "95th percentile of the soft solids' volume change "
     "25.3 % against the 25 % bound with the pinned kernels since L-BFGS sums in fixed chunks "
     "(24.85 % before, 24.996 % before the untangling's rounds focused on the tangles, 25.3 % "
     "with AVX-512 kernels): within a path of the bound, so not asserted (issue 23, items 4 "
     "and 6)",
-    ("tet10", 90.0, "quality"): "the corner tets meet every tet measure, but mid-side nodes put "
-    "back on a bone's surface sit 0.43 edge lengths off their edges (normal and tangent "
-    "offsets, against 0; coarse 10-node tet demo, 5 December, pinned kernels)",
+    ("tet10", 90.0, "quality"): "the mid-side nodes stay on their edges, but holding the edges "
+    "out of the bones leaves a corner tet's collapse at 0.049 against the initial 0.108 (aspect "
+    "25.8 against 13.5; coarse 10-node tet demo, 6 December)",
     **{
         (name, 120.0, "export"): f"{count} soft-tissue node(s) deeper than 0.5 mm in a bone "
         f"(deepest {deepest} mm): the quality optimiser's settling no longer flattens tets to "
@@ -218,12 +226,14 @@ def _cells(check: str, angles=ANGLES):
 
 @pytest.mark.parametrize(("name", "angle"), list(_cells("export")))
 def test_export_holds_on_variant(cells, name, angle):
-    """No inverted movable element, no tissue in a bone; at 90 deg the soft tissue keeps its
-    volume (measured on the coarse hex demo, 4 December, pinned kernels: 95th percentile
-    24.0 %, in metres 24.3 %, left 24.4 %, built at 0 deg 24.8 %)."""
+    """No inverted movable element, no tissue in a bone that the deck did not have there at
+    rest (the coarse 10-node tet demo has 9 mid-side nodes up to 6.8 mm inside the tibia in
+    the deck itself, every other variant none); at 90 deg the soft tissue keeps its volume
+    (measured on the coarse hex demo, 4 December, pinned kernels: 95th percentile 24.0 %, in
+    metres 24.3 %, left 24.4 %, built at 0 deg 24.8 %)."""
     cell = cells(name, angle)
     assert cell.inverted_movable == 0, cell
-    assert cell.in_bone == 0, cell
+    assert cell.in_bone_beyond_rest == 0, cell
     if angle == 90.0:
         assert cell.p95_pct <= P95_LIMIT_PCT, cell
 
@@ -245,7 +255,13 @@ def test_quality_at_0_and_90_no_worse_than_initial(cells, name, angle):
         carried = abs(cell.worst_jacobian - cell.initial_worst_jacobian) <= 1e-9
         assert carried or cell.worst_jacobian >= cell.initial_worst_jacobian + GATE_MARGIN, cell
     for measure, (worst, initial, low_bad) in cell.tet_measures.items():
-        assert (worst >= initial) if low_bad else (worst <= initial), (measure, cell)
+        # a straight edge's mid-side offset is rounding (1e-11 edge lengths in the deck), and
+        # a shorter edge scales it up: straight to within the gate's tolerance
+        slack = GATE_JACOBIAN_TOLERANCE if measure.startswith("midside") else 0.0
+        assert (worst >= initial - slack) if low_bad else (worst <= initial + slack), (
+            measure,
+            cell,
+        )
 
 
 def test_the_relaxed_nodes_take_the_mid_side_nodes_of_their_edges(repositioners):
