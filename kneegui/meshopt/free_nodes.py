@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.errors import raise_if_cancelled
 from kneegui.meshopt.nodes import boundary_node_mask, node_part_count
 from kneegui.model import ElementBlock, Model
 from kneegui.quality.metrics import QualityResult
@@ -119,6 +120,7 @@ def smoothing_free_nodes(
     degraded_element_mask: Mapping[str, NDArray[np.bool_]] | None = None,
     rings: int = 2,
     soft_interfaces: bool = False,
+    cancel: Callable[[], bool] | None = None,
 ) -> NDArray[np.bool_]:
     """Interior soft-tissue nodes near degraded elements: the nodes the smoother may move.
 
@@ -138,6 +140,9 @@ def smoothing_free_nodes(
     soft_interfaces : bool
         Also free the nodes shared only by soft-tissue solids of several parts (e.g. the
         interface between thigh and knee flesh). Default False: every part-boundary node stays.
+    cancel : callable, optional
+        Asked between the steps (a whole-body model: about a second in all); True raises
+        :class:`~kneegui.errors.Cancelled`.
 
     Returns
     -------
@@ -147,9 +152,11 @@ def smoothing_free_nodes(
         solid mesh, not in a fixed part, and within ``rings`` elements of a degraded element.
     """
     free, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     # whether a node is shared by parts or lies on the boundary depends only on the elements
     # using it: look at those around the candidates alone, not at a whole-body model
     around = elements_touching(model.blocks, free)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     if soft_interfaces:
         # nodes touched by anything other than soft-tissue solids stay
         other = np.zeros(model.n_nodes, dtype=bool)
@@ -161,7 +168,9 @@ def smoothing_free_nodes(
         free &= ~other
     else:
         free &= node_part_count(around, model.n_nodes) == 1
+    raise_if_cancelled(cancel, "smoothing cancelled")
     free &= ~boundary_node_mask(model.n_nodes, around)
+    raise_if_cancelled(cancel, "smoothing cancelled")
     fixed = list(fixed_part_ids)
     if fixed:
         free[model.part_node_indices(fixed)] = False

@@ -100,7 +100,9 @@ def smooth_posed_model(
     )
     degraded = degraded_elements(quality, initial_quality, threshold, tolerance)
     raise_if_cancelled(cancel, "smoothing cancelled")
-    free = smoothing_free_nodes(posed, soft, fixed, degraded, opt.rings, opt.soft_interfaces)
+    free = smoothing_free_nodes(
+        posed, soft, fixed, degraded, opt.rings, opt.soft_interfaces, cancel=cancel
+    )
     raise_if_cancelled(cancel, "smoothing cancelled")
     sliding = None
     if opt.slide_skin:

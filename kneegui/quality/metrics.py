@@ -9,13 +9,14 @@ cheap enough to call on every slider step for the elements that moved. Definitio
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kneegui.errors import raise_if_cancelled
 from kneegui.model import ElementBlock
 from kneegui.quality.kernels import (
     FACE_METRICS,
@@ -54,6 +55,8 @@ ONLY_METRICS: tuple[str, ...] = (
 
 _CHUNK = 8192  # elements per kernel call: keeps the temporaries in cache
 _PARALLEL_MIN = 4 * _CHUNK
+#: ``cancel`` is asked before every this many chunks (a whole-body model: about 0.1 s each)
+_WAVE = 16
 
 
 @dataclass(frozen=True)
@@ -206,6 +209,7 @@ class QualityEvaluator:
         coords: ArrayLike,
         rows: Mapping[str, ArrayLike] | None = None,
         only: str | None = None,
+        cancel: Callable[[], bool] | None = None,
     ) -> QualityResult:
         """Measure the elements at the given node coordinates.
 
@@ -226,6 +230,9 @@ class QualityEvaluator:
             them, the Gauss-point Jacobian with a volume, is kept and marked measured). The
             other metrics of the result are NaN and marked as not measured (a type without
             the metric, a hex for a tet measure, has it NaN as always).
+        cancel : callable, optional
+            Asked between waves of chunks (a whole-body model's elements: over a second in
+            all); True raises :class:`~kneegui.errors.Cancelled`.
 
         Returns
         -------
@@ -251,7 +258,7 @@ class QualityEvaluator:
             else:
                 continue
             if only is not None:
-                values = self._run(etype, xyz, xyz_t, sub, only=only)
+                values = self._run(etype, xyz, xyz_t, sub, only=only, cancel=cancel)
                 jac = values["jacobian_corner"]
                 out[etype] = ElementQuality(
                     etype=etype,
@@ -262,7 +269,7 @@ class QualityEvaluator:
                     measured=tuple(dict.fromkeys(("jacobian_corner", only, *values))),
                 )
                 continue
-            values = self._run(etype, xyz, xyz_t, sub)
+            values = self._run(etype, xyz, xyz_t, sub, cancel=cancel)
             out[etype] = ElementQuality(
                 etype=etype, rows=sel, inverted=values["jacobian_corner"] <= 0.0, **values
             )
@@ -275,6 +282,7 @@ class QualityEvaluator:
         xyz_t: NDArray[np.float64] | None,
         conn: NDArray[np.int64],
         only: str | None = None,
+        cancel: Callable[[], bool] | None = None,
     ) -> dict[str, NDArray[np.float64]]:
         if only in (*FACE_METRICS, "volume", *TET10_METRICS):
             # the type's own kernel, working out that measure (and the corner Jacobian) alone
@@ -326,9 +334,13 @@ class QualityEvaluator:
         starts = range(0, m, _CHUNK)
         if m >= _PARALLEL_MIN and self._threads > 1:
             with ThreadPoolExecutor(self._threads) as pool:
-                list(pool.map(work, starts))
+                for wave in range(0, len(starts), _WAVE):
+                    raise_if_cancelled(cancel, "cancelled while measuring the quality")
+                    list(pool.map(work, starts[wave : wave + _WAVE]))
         else:
-            for s in starts:
+            for k, s in enumerate(starts):
+                if k % _WAVE == 0:
+                    raise_if_cancelled(cancel, "cancelled while measuring the quality")
                 work(s)
         return result
 
@@ -337,6 +349,7 @@ def compute_quality(
     coords: ArrayLike,
     blocks: Mapping[str, ElementBlock],
     rows: Mapping[str, ArrayLike] | None = None,
+    cancel: Callable[[], bool] | None = None,
 ) -> QualityResult:
     """Quality metrics of every solid and shell element.
 
@@ -348,13 +361,15 @@ def compute_quality(
         Element blocks (``Model.blocks``); beams and springs are skipped.
     rows : mapping of str to array_like of int, optional
         Only these rows per type (see :meth:`QualityEvaluator.evaluate`).
+    cancel : callable, optional
+        As for :meth:`QualityEvaluator.evaluate`.
 
     Returns
     -------
     QualityResult
         Per element type, arrays aligned with the block's rows (or with ``rows``).
     """
-    return QualityEvaluator(blocks).evaluate(coords, rows)
+    return QualityEvaluator(blocks).evaluate(coords, rows, cancel=cancel)
 
 
 def element_quality(model, rows: Mapping[str, ArrayLike] | None = None) -> QualityResult:

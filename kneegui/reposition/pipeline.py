@@ -269,7 +269,7 @@ def pose_model(
     model, setup = repositioner.model, repositioner.setup
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    initial_q = repositioner.initial_quality()  # once per setup
+    initial_q = repositioner.initial_quality(cancel)  # once per setup
     timings["quality_initial"] = time.perf_counter() - t
     # the first export measures the initial model (1.6 s at 1.76M nodes), then poses (1.5 s)
     raise_if_cancelled(cancel, "export cancelled before posing")
@@ -307,7 +307,7 @@ def pose_model(
     posed = model.with_coords(improved.relaxed)
     measuring("measuring the quality")
     t = time.perf_counter()
-    posed_q = repositioner.quality_of(posed.coords)  # the smoothing measured it already
+    posed_q = repositioner.quality_of(posed.coords, cancel)  # the smoothing measured it already
     timings["quality_posed"] = time.perf_counter() - t
     soft_parts = set(setup.parts_of(*SOFT_ROLES))
     quality: dict[str, Any] = {"initial": _stats(model, initial_q), "posed": _stats(posed, posed_q)}

@@ -262,6 +262,11 @@ def edge_adjacency(a: NDArray[np.int64], b: NDArray[np.int64], n: int) -> sp.csr
     )
 
 
+#: :meth:`NodeRows.touching` marks the rows in a mask rather than sorting them once they are
+#: more than one in this many of all rows (the same sorted rows either way).
+TOUCHING_MASK_SHARE = 16
+
+
 class NodeRows:
     """The corners (rows of ``tets``) around each real node (below ``n``), as a compressed
     row index: :meth:`touching` picks the corners touching a set of nodes."""
@@ -276,6 +281,7 @@ class NodeRows:
         del order
         self.indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(np.bincount(flat[real], minlength=n), out=self.indptr[1:])
+        self.n_rows = len(tets)
 
     def touching(self, nodes: NDArray[np.int64]) -> NDArray[np.int64]:
         """Sorted rows of the corners with a node among ``nodes``."""
@@ -286,7 +292,13 @@ class NodeRows:
         if total == 0:
             return np.zeros(0, dtype=np.int64)
         offsets = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(total)
-        return sorted_unique(self.indices[offsets]).astype(np.int64)
+        if total < self.n_rows // TOUCHING_MASK_SHARE:
+            return sorted_unique(self.indices[offsets]).astype(np.int64)
+        # many corners: marking them costs a pass over every row, sorting them far more (the
+        # 1M demo's region: 1 s, the longest wait for a cancel of the untangling's set-up)
+        mask = np.zeros(self.n_rows, dtype=bool)
+        mask[self.indices[offsets]] = True
+        return np.flatnonzero(mask)
 
 
 def _pinned_corners(
@@ -1241,7 +1253,9 @@ class ElasticRelaxation:
             def constraints(coords: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
                 parts = []
                 if use_contact:
-                    which, normals, offsets, _ = self._contact_planes(coords, contact, transforms)
+                    which, normals, offsets, _ = self._contact_planes(
+                        coords, contact, transforms, cancel
+                    )
                     parts.append((contact[which], normals, offsets))
                 if order is not None:
                     parts.append(order.constraints(coords))

@@ -539,20 +539,26 @@ class Repositioner:
             length_scale=self.length_scale,
         )
 
-    def initial_quality(self) -> QualityResult:
+    def initial_quality(self, cancel: Callable[[], bool] | None = None) -> QualityResult:
         """Quality of the initial model (every element), computed once and shared by the
-        relaxation's aims, the smoothing's goals and the export's report."""
+        relaxation's aims, the smoothing's goals and the export's report (``cancel`` as for
+        :func:`~kneegui.quality.compute_quality`)."""
         if self._initial_quality is None:
-            self._initial_quality = compute_quality(self.model.coords, self.model.blocks)
+            self._initial_quality = compute_quality(
+                self.model.coords, self.model.blocks, cancel=cancel
+            )
         return self._initial_quality
 
-    def quality_of(self, coords: NDArray[np.float64]) -> QualityResult:
+    def quality_of(
+        self, coords: NDArray[np.float64], cancel: Callable[[], bool] | None = None
+    ) -> QualityResult:
         """Quality of every element at ``coords``, remembered for the last coordinates asked
-        about: the smoothing and the export's report measure the same relaxed pose."""
+        about: the smoothing and the export's report measure the same relaxed pose (``cancel``
+        as for :func:`~kneegui.quality.compute_quality`)."""
         memo = self._quality_memo
         if memo is not None and memo[0].shape == coords.shape and np.array_equal(memo[0], coords):
             return memo[1]
-        result = compute_quality(coords, self.model.blocks)
+        result = compute_quality(coords, self.model.blocks, cancel=cancel)
         self._quality_memo = (np.array(coords, copy=True), result)
         return result
 
@@ -579,7 +585,7 @@ class Repositioner:
         del face_tets
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         raise_if_cancelled(cancel, "relaxation set-up cancelled")
-        initial = self.initial_quality()
+        initial = self.initial_quality(cancel)
         raise_if_cancelled(cancel, "relaxation set-up cancelled")
         options = (self.options.improvement.relax or RelaxOptions()).scaled(self.length_scale)
         if options.slide_skin is None:
@@ -922,7 +928,7 @@ class Repositioner:
 
         def smooth(coords, options, progress, cancel):
             raise_if_cancelled(cancel, "smoothing cancelled")
-            quality = self.quality_of(coords)
+            quality = self.quality_of(coords, cancel)
             raise_if_cancelled(cancel, "smoothing cancelled")
             guard = self.bone_depth_guard(coords, bone)
             smoothed, report = smooth_posed_model(

@@ -327,6 +327,24 @@ def test_corners_pinned_between_two_bones_are_left_out():
     assert relax.tets.tolist() == [[0, 1, 5, 4]]
 
 
+def test_corners_touching_nodes_are_the_same_sorted_or_marked():
+    """:meth:`NodeRows.touching` marks many corners in a mask instead of sorting them (1 s of
+    the 1M demo's untangling set-up); both ways give ``np.unique`` of the corners' rows."""
+    rng = np.random.default_rng(3)
+    n = 500
+    tets = rng.integers(0, n + 40, size=(4000, 4))  # nodes >= n: virtual
+    rows = relax_module.NodeRows(tets, n)
+    for size in (3, 50, 400):  # few corners (sorted), many (marked)
+        nodes = np.sort(rng.choice(n, size, replace=False))
+        expected = np.flatnonzero(np.isin(tets, nodes).any(axis=1))
+        got = rows.touching(nodes)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, expected)
+    assert len(rows.touching(np.sort(rng.choice(n, 400, replace=False)))) > (
+        rows.n_rows // relax_module.TOUCHING_MASK_SHARE
+    )
+
+
 def test_free_midside_nodes_of_tet10_follow_their_edge():
     """The energy sees a 10-node tet's corner tetrahedron; a free mid-side node sits at the
     middle of its edge's corners plus its offset from there at rest, so a curved edge keeps its

@@ -60,6 +60,19 @@ def test_free_nodes_exclude_bone_part_boundary_and_surface(block_model):
     assert np.array_equal(free, interior)
 
 
+def test_free_nodes_ask_cancel_between_their_steps(block_model):
+    """About a second on a whole-body model: ``cancel`` is asked between the steps, True
+    stops them, False changes nothing."""
+    model = block_model(6, 6, 6, bone_layers=2)
+    asked = []
+    free = smoothing_free_nodes(model, [2], [1], cancel=lambda: asked.append(1) or False)
+    assert len(asked) == 4
+    assert free.any()
+    np.testing.assert_array_equal(free, smoothing_free_nodes(model, [2], [1]))
+    with pytest.raises(Cancelled):
+        smoothing_free_nodes(model, [2], [1], cancel=lambda: True)
+
+
 def test_free_nodes_follow_degraded_elements_and_rings(block_model):
     model = block_model(8, 8, 8, bone_layers=1, skin=False)
     hexes = model.blocks["hex8"]

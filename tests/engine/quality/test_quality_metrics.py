@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
+from kneegui.errors import Cancelled
 from kneegui.model import ElementBlock
 from kneegui.quality import QualityEvaluator, compute_quality
 from kneegui.quality.metrics import METRICS, ONLY_METRICS
@@ -339,6 +340,22 @@ def test_parallel_chunks_equal_serial():
     parallel = QualityEvaluator(blocks, threads=2).evaluate(pts)["hex8"]
     for k in ("jacobian_corner", "warpage", "volume"):
         np.testing.assert_array_equal(getattr(serial, k), getattr(parallel, k))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cancel_is_asked_between_waves_of_chunks(threads):
+    """A whole-body model's quality takes over a second: ``cancel`` is asked before every wave
+    of chunks, True stops it, and False changes nothing."""
+    pts, blocks = _random_hexes(40000, 0.3, 8)  # 5 chunks: one wave
+    asked = []
+    ev = QualityEvaluator(blocks, threads=threads)
+    result = ev.evaluate(pts, cancel=lambda: asked.append(1) or False)["hex8"]
+    assert len(asked) == 1
+    plain = ev.evaluate(pts)["hex8"]
+    for k in ("jacobian_corner", "warpage", "volume"):
+        np.testing.assert_array_equal(getattr(result, k), getattr(plain, k))
+    with pytest.raises(Cancelled):
+        compute_quality(pts, blocks, cancel=lambda: True)
 
 
 def test_beams_and_springs_are_not_measured():
