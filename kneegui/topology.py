@@ -24,11 +24,13 @@ their mapping order (:func:`block_offsets`); :mod:`kneegui.io.vtu`, the viewer a
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from kneegui.errors import raise_if_cancelled
 
 
 class ElementBlock(Protocol):
@@ -322,8 +324,15 @@ def boundary_faces(
     return faces[4], faces[3]
 
 
+#: :func:`corner_tetrahedra` fills its array this many elements at a time, asking ``cancel``
+#: before each chunk.
+CORNER_ELEMENT_CHUNK = 1 << 18
+
+
 def corner_tetrahedra(
-    blocks: Mapping[str, ElementBlock], masks: Mapping[str, NDArray[np.bool_]] | None = None
+    blocks: Mapping[str, ElementBlock],
+    masks: Mapping[str, NDArray[np.bool_]] | None = None,
+    cancel: Callable[[], bool] | None = None,
 ) -> NDArray[np.int64]:
     """(C, 4) node indices of the corner tetrahedra of the solid elements.
 
@@ -336,16 +345,26 @@ def corner_tetrahedra(
     blocks : mapping of element type to ElementBlock
     masks : mapping of element type to (m,) bool, optional
         Which elements of each block to take (default: all).
+    cancel : callable, optional
+        Asked before every :data:`CORNER_ELEMENT_CHUNK` elements (a whole-body model's knee:
+        millions of corners, over a second); True raises :class:`~kneegui.errors.Cancelled`.
     """
-    out = [np.zeros((0, 4), dtype=np.int64)]
+    picked = []
     for etype in SOLID_TYPES:
         block = blocks.get(etype)
         if block is None or len(block.conn) == 0:
             continue
         conn = block.conn if masks is None else block.conn[masks[etype]]
-        table = np.array(CORNER_TRIPLES[etype])
-        out.append(conn[:, table].reshape(-1, 4).astype(np.int64))
-    return np.concatenate(out)
+        picked.append((conn, np.array(CORNER_TRIPLES[etype])))
+    out = np.empty((sum(len(c) * len(t) for c, t in picked), 4), dtype=np.int64)
+    row = 0
+    for conn, table in picked:
+        for start in range(0, len(conn), CORNER_ELEMENT_CHUNK):
+            raise_if_cancelled(cancel, "cancelled while listing the corner tetrahedra")
+            corners = conn[start : start + CORNER_ELEMENT_CHUNK][:, table].reshape(-1, 4)
+            out[row : row + len(corners)] = corners
+            row += len(corners)
+    return out
 
 
 # ---------------------------------------------------------------------- degenerate solids

@@ -77,11 +77,13 @@ def _base_candidates(
     soft_tissue_part_ids: Iterable[int],
     degraded_element_mask: Mapping[str, NDArray[np.bool_]] | None,
     rings: int,
+    cancel: Callable[[], bool] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
     soft = np.array(sorted(set(int(p) for p in soft_tissue_part_ids)), dtype=np.int64)
     n = model.n_nodes
     soft_nodes = np.zeros(n, dtype=bool)
     soft_nodes[model.part_node_indices(soft, etypes=MOVABLE_SOLID_TYPES)] = True
+    raise_if_cancelled(cancel, "smoothing cancelled")
     if degraded_element_mask is None:
         near = soft_nodes
     else:
@@ -151,7 +153,7 @@ def smoothing_free_nodes(
         tet4) (or of several, with ``soft_interfaces``), not on the boundary surface of the
         solid mesh, not in a fixed part, and within ``rings`` elements of a degraded element.
     """
-    free, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings)
+    free, soft = _base_candidates(model, soft_tissue_part_ids, degraded_element_mask, rings, cancel)
     raise_if_cancelled(cancel, "smoothing cancelled")
     # whether a node is shared by parts or lies on the boundary depends only on the elements
     # using it: look at those around the candidates alone, not at a whole-body model

@@ -245,13 +245,20 @@ def _rest_corner_geometry(
     return usable, inv, det[usable]
 
 
-def edge_adjacency(a: NDArray[np.int64], b: NDArray[np.int64], n: int) -> sp.csr_matrix:
+def edge_adjacency(
+    a: NDArray[np.int64],
+    b: NDArray[np.int64],
+    n: int,
+    cancel: Callable[[], bool] | None = None,
+) -> sp.csr_matrix:
     """(n, n) int8 adjacency (1 where two nodes share an edge ``a[i]``-``b[i]``, both ways) of
     the edges whose ends are both below ``n``; from the unique node pairs
     (:func:`~kneegui.meshopt.nodes.unique_pairs`, one way first: the corners repeat each edge
-    many times), without the float64 triplets of a sparse sum."""
+    many times), without the float64 triplets of a sparse sum. ``cancel`` is asked between
+    the two ways (a whole-body model's region: 1.5 s in all)."""
     real = (a < n) & (b < n)
     one_way = unique_pairs(a[real], b[real], n)
+    raise_if_cancelled(cancel, "relaxation set-up cancelled")
     pairs = unique_pairs(one_way.ravel(), one_way[:, ::-1].ravel(), n)
     del one_way
     index = np.int32 if max(n, len(pairs)) < 2**31 else np.int64
@@ -496,7 +503,9 @@ class ElasticRelaxation:
         self.n_nodes = n
         check()
         # node adjacency along the corner edges (real nodes), for growing the relaxed region
-        self._adjacency = edge_adjacency(np.repeat(self.tets[:, 0], 3), self.tets[:, 1:].ravel(), n)
+        self._adjacency = edge_adjacency(
+            np.repeat(self.tets[:, 0], 3), self.tets[:, 1:].ravel(), n, cancel
+        )
         check()
         # corner rows by (real) node, to pick the corners touching a set of nodes
         self._node_rows = NodeRows(self.tets, n)
@@ -516,7 +525,7 @@ class ElasticRelaxation:
         self._contact_memo: dict[str, DistanceMemo] = {}
         for name, surface in self.bones.items():
             check()
-            depth = surface.query(self.rest[self.contact_nodes])[0]
+            depth = surface.query(self.rest[self.contact_nodes], cancel=cancel)[0]
             self._rest_floor[name] = np.clip(depth, 0.0, self.options.contact_clearance)
             self._contact_memo[name] = DistanceMemo(surface, self.rest[self.contact_nodes], depth)
         quads = np.zeros((0, 4), dtype=np.int64) if quads is None else np.asarray(quads)

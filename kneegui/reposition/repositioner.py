@@ -581,7 +581,7 @@ class Repositioner:
         raise_if_cancelled(cancel, "relaxation set-up cancelled")
         # one array of corners, not the two it is made of as well (a whole-body model's region
         # has millions)
-        tets = np.concatenate([corner_tetrahedra(model.blocks, solids), face_tets])
+        tets = np.concatenate([corner_tetrahedra(model.blocks, solids, cancel), face_tets])
         del face_tets
         size = 0.5 * (self.axes.lateral_fit.radius + self.axes.medial_fit.radius)
         raise_if_cancelled(cancel, "relaxation set-up cancelled")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import kneegui.topology as topology
+from kneegui.errors import Cancelled
 from kneegui.model import ElementBlock
 from kneegui.quality.kernels import (
     HEX_FACES,
@@ -243,3 +245,27 @@ def test_sorted_unique_is_np_unique(dtype):
         expected = np.unique(a)
         assert got.dtype == expected.dtype
         np.testing.assert_array_equal(got, expected)
+
+
+def test_corner_tetrahedra_in_chunks_are_the_same_and_ask_cancel(monkeypatch):
+    """A whole-body model's knee has millions of corners: the table is filled a chunk of
+    elements at a time, asking ``cancel`` before each, and comes out the same."""
+    rng = np.random.default_rng(5)
+    blocks = {
+        "hex8": ElementBlock("hex8", np.arange(10), np.ones(10, int), rng.integers(0, 99, (10, 8))),
+        "tet4": ElementBlock("tet4", np.arange(7), np.ones(7, int), rng.integers(0, 99, (7, 4))),
+    }
+    masks = {"hex8": rng.random(10) < 0.7, "tet4": np.ones(7, bool)}
+    whole = corner_tetrahedra(blocks, masks)
+    table = np.array(CORNER_TRIPLES["hex8"])
+    expected = np.concatenate(
+        [blocks["hex8"].conn[masks["hex8"]][:, table].reshape(-1, 4), blocks["tet4"].conn]
+    )
+    np.testing.assert_array_equal(whole, expected)
+    monkeypatch.setattr(topology, "CORNER_ELEMENT_CHUNK", 3)
+    asked = []
+    chunked = corner_tetrahedra(blocks, masks, cancel=lambda: asked.append(1) or False)
+    np.testing.assert_array_equal(chunked, whole)
+    assert len(asked) == -(-int(masks["hex8"].sum()) // 3) + 3  # ceil(hex / 3) + ceil(7 / 3)
+    with pytest.raises(Cancelled):
+        corner_tetrahedra(blocks, masks, cancel=lambda: True)

@@ -327,6 +327,17 @@ def test_corners_pinned_between_two_bones_are_left_out():
     assert relax.tets.tolist() == [[0, 1, 5, 4]]
 
 
+def test_edge_adjacency_asks_cancel_between_its_two_ways():
+    a, b = np.array([0, 1, 2]), np.array([1, 2, 3])
+    asked = []
+    adj = relax_module.edge_adjacency(a, b, 4, cancel=lambda: asked.append(1) or False)
+    assert asked == [1]
+    np.testing.assert_array_equal(adj.toarray(), relax_module.edge_adjacency(a, b, 4).toarray())
+    assert adj.toarray().sum() == 6
+    with pytest.raises(Cancelled):
+        relax_module.edge_adjacency(a, b, 4, cancel=lambda: True)
+
+
 def test_corners_touching_nodes_are_the_same_sorted_or_marked():
     """:meth:`NodeRows.touching` marks many corners in a mask instead of sorting them (1 s of
     the 1M demo's untangling set-up); both ways give ``np.unique`` of the corners' rows."""
