@@ -77,6 +77,7 @@ class MidsideNodes:
     ) -> None:
         self.nodes, self.ends = midside_edges(block, movable)
         self.rest = rest
+        self._first, self._second = self.ends[:, 0].copy(), self.ends[:, 1].copy()
         self.offset = rest[self.nodes] - rest[self.ends].mean(axis=1)
         self._rest_depth: dict[str, NDArray[np.float64]] = {}
 
@@ -89,7 +90,13 @@ class MidsideNodes:
         if len(self.nodes) == 0:
             return x
         out = np.array(x, dtype=np.float64, copy=True)
-        out[self.nodes] = x[self.ends].mean(axis=1) + self.offset
+        # (a + b) * 0.5: the same bits as the mean of the two, without its reduction (a tenth
+        # of a coarse 10-node deck's slider step)
+        middle = x[self._first]
+        middle += x[self._second]
+        middle *= 0.5
+        middle += self.offset
+        out[self.nodes] = middle
         return out
 
     def rest_depth(self, name: str, surface: BoneSurfaceDistance) -> NDArray[np.float64]:
