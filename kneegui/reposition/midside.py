@@ -60,43 +60,62 @@ def midside_edges(
 
 
 class MidsideNodes:
-    """The movable mid-side nodes of a model's 10-node tets (module docstring).
+    """Mid-side nodes of 10-node tets and their edges (module docstring).
 
     Parameters
     ----------
-    block : ElementBlock or None
-        The model's tet10 block (None or empty: nothing to do).
-    movable : (N,) bool ndarray
-        Nodes the export may move (soft tissue; not bone, fixed or unassigned).
+    nodes : (M,) int ndarray
+        The mid-side nodes.
+    ends : (M, 2) int ndarray
+        The two corner nodes of each one's edge.
     rest : (N, 3) ndarray
         The model's coordinates.
     """
 
     def __init__(
-        self, block: ElementBlock | None, movable: NDArray[np.bool_], rest: NDArray[np.float64]
+        self, nodes: NDArray[np.int64], ends: NDArray[np.int64], rest: NDArray[np.float64]
     ) -> None:
-        self.nodes, self.ends = midside_edges(block, movable)
+        self.nodes, self.ends = nodes, ends
+        self._first, self._second = ends[:, 0].copy(), ends[:, 1].copy()
         self.rest = rest
-        self._first, self._second = self.ends[:, 0].copy(), self.ends[:, 1].copy()
-        self.offset = rest[self.nodes] - rest[self.ends].mean(axis=1)
+        self.offset = rest[nodes] - rest[ends].mean(axis=1)
         self._rest_depth: dict[str, NDArray[np.float64]] = {}
+
+    @classmethod
+    def of_block(
+        cls,
+        block: ElementBlock | None,
+        movable: NDArray[np.bool_],
+        rest: NDArray[np.float64],
+        free_corners: NDArray[np.bool_] | None = None,
+    ) -> MidsideNodes:
+        """The ``movable`` mid-side nodes of a tet10 block (None or empty: none), as
+        :func:`midside_edges` picks them."""
+        return cls(*midside_edges(block, movable, free_corners), rest)
 
     def __len__(self) -> int:
         return len(self.nodes)
 
+    def carried(
+        self, x: NDArray[np.float64], rows: NDArray[np.int64] | slice = slice(None)
+    ) -> NDArray[np.float64]:
+        """Where the corners at ``x`` put the mid-side nodes ``rows``: the middle of their
+        edges plus the rest offsets. ``(a + b) * 0.5``: the same bits as the mean of the two,
+        without its reduction (a tenth of a coarse 10-node deck's slider step)."""
+        middle = x[self._first[rows]]
+        middle += x[self._second[rows]]
+        middle *= 0.5
+        middle += self.offset[rows]
+        return middle
+
     def straighten(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """``x`` with each mid-side node at the middle of its edge plus its rest offset (a new
-        array when there are any)."""
+        array when there are any). The rest offset is not rotated with the edge: a straight
+        edge stays straight, a curved one keeps its bulge's size and direction."""
         if len(self.nodes) == 0:
             return x
         out = np.array(x, dtype=np.float64, copy=True)
-        # (a + b) * 0.5: the same bits as the mean of the two, without its reduction (a tenth
-        # of a coarse 10-node deck's slider step)
-        middle = x[self._first]
-        middle += x[self._second]
-        middle *= 0.5
-        middle += self.offset
-        out[self.nodes] = middle
+        out[self.nodes] = self.carried(x)
         return out
 
     def rest_depth(self, name: str, surface: BoneSurfaceDistance) -> NDArray[np.float64]:

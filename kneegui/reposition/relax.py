@@ -63,7 +63,7 @@ from kneegui.model import ElementBlock
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
-from kneegui.reposition.midside import midside_edges
+from kneegui.reposition.midside import MidsideNodes
 from kneegui.reposition.skin_contours import ContourOrder, SkinContours
 from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, SOLID_FACES, sorted_unique
 
@@ -338,12 +338,13 @@ def _free_midside_nodes(
     blocks: Mapping[str, ElementBlock] | None,
     is_free: NDArray[np.bool_],
     free: NDArray[np.int64],
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Mid-side nodes of the 10-node tets among ``free`` whose edge has a free corner, and the
-    two corner nodes of each one's edge ((M,), (M, 2))."""
+    rest: NDArray[np.float64],
+) -> MidsideNodes:
+    """Mid-side nodes of the 10-node tets among ``free`` whose edge has a free corner."""
     requested = np.zeros(len(is_free), dtype=bool)
     requested[free] = True
-    return midside_edges(None if blocks is None else blocks.get("tet10"), requested, is_free)
+    block = None if blocks is None else blocks.get("tet10")
+    return MidsideNodes.of_block(block, requested, rest, is_free)
 
 
 def _distance_gradient(
@@ -562,8 +563,7 @@ class ElasticRelaxation:
 
         # 10-node tets: the energy and the quality optimisation see their corner tetrahedra only;
         # a free mid-side node sits where it sat at rest relative to its edge's ends
-        self._midside, self._midside_ends = _free_midside_nodes(blocks, self.is_free, free)
-        self._midside_depth: dict[str, NDArray[np.float64]] = {}
+        self._midside = _free_midside_nodes(blocks, self.is_free, free, self.rest)
         self.initial_quality = initial_quality
         self.is_beyond = np.zeros(n, dtype=bool)
         if beyond is not None:
@@ -574,53 +574,31 @@ class ElasticRelaxation:
         self, before: NDArray[np.float64], after: NDArray[np.float64]
     ) -> NDArray[np.float64]:
         """``after`` with each free mid-side node at the middle of its edge's two corner nodes,
-        plus its offset from there at rest (a new array when there are any; ``before`` is not
-        read, kept for the callers).
+        plus its offset from there at rest (:meth:`MidsideNodes.straighten
+        <kneegui.reposition.midside.MidsideNodes.straighten>`; ``before`` is not read, kept for
+        the callers).
 
         Not moved from ``before`` by its ends' mean motion: the mapping places a mid-side node
         on its own, up to 1.4 edge lengths off its edge's straight line on the coarse 10-node
-        demo at 90 deg (the gate's mid-side normal offset; 0 at rest), and that offset stayed.
-        The rest offset is not rotated with the edge: straight-sided tets (every deck seen so
-        far) stay straight, a curved one keeps its bulge's size and direction."""
-        return self._carry(after, self._midside, self._midside_ends)
-
-    def _carry(
-        self, x: NDArray[np.float64], midside: NDArray[np.int64], ends: NDArray[np.int64]
-    ) -> NDArray[np.float64]:
-        """``x`` with the mid-side nodes ``midside`` at the middle of their edges ``ends`` plus
-        their offset from there at rest (:meth:`carry_midside`)."""
-        if len(midside) == 0:
-            return x
-        out = np.array(x, dtype=np.float64, copy=True)
-        out[midside] = x[ends].mean(axis=1) + (self.rest[midside] - self.rest[ends].mean(axis=1))
-        return out
+        demo at 90 deg (the gate's mid-side normal offset; 0 at rest), and that offset stayed."""
+        return self._midside.straighten(after)
 
     def midside_out_of_bones(
         self, x: NDArray[np.float64], transforms: Mapping[str, RigidTransform] | None
     ) -> NDArray[np.float64]:
-        """``x`` with each free mid-side node that lies inside a posed bone put on the bone's
-        surface (a new array when any moves).
+        """``x`` with each free mid-side node that lies deeper inside a posed bone than at rest
+        (or inside it, when it was outside) moved out to that depth, at right angles to its
+        edge (:meth:`MidsideNodes.out_of_bones
+        <kneegui.reposition.midside.MidsideNodes.out_of_bones>` with no tolerance; a new array
+        when any moves).
 
         The contact holds the corner nodes out of the bones; a straight edge between two corners
         pressed onto a convex bone cuts into it, and its mid-side node with it (the coarse
         10-node demo at 90 deg: 140 mid-side nodes deeper than 0.5 mm, no corner node).
         """
-        if len(self._midside) == 0 or not self.bones or transforms is None:
+        if not self.bones or transforms is None:
             return x
-        out = x
-        for name, surface in self.bones.items():
-            tr = transforms.get(name)
-            if tr is None:
-                continue
-            local = tr.inverse().apply(out[self._midside])
-            depth, point, _, _ = surface.query(local)
-            deep = depth < 0.0
-            if not deep.any():
-                continue
-            if out is x:
-                out = np.array(x, dtype=np.float64, copy=True)
-            out[self._midside[deep]] = tr.apply(point[deep])
-        return out
+        return self._midside.out_of_bones(x, self.bones, transforms, 0.0)
 
     def is_free_quad(self, free: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Which of :attr:`quads` have a node among ``free``."""
@@ -758,46 +736,32 @@ class ElasticRelaxation:
         depth the edge's middle must gain (each may give up the margin the middle has, when it
         has one): if both keep theirs, so does the middle. The planes are refitted every round,
         like the corners' own."""
-        slot = np.searchsorted(nodes, self._midside_ends)
+        mid = self._midside
+        slot = np.searchsorted(nodes, mid.ends)
         slot = np.minimum(slot, len(nodes) - 1)
-        listed = nodes[slot] == self._midside_ends  # (M, 2)
+        listed = nodes[slot] == mid.ends  # (M, 2)
         edges = np.flatnonzero(listed.any(axis=1))
         empty = np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
         if len(edges) == 0:
             return empty
-        ends = self._midside_ends[edges]
-        offset = self.rest[self._midside[edges]] - self.rest[ends].mean(axis=1)
-        local = tr.inverse().apply(x[ends].mean(axis=1) + offset)
+        local = tr.inverse().apply(mid.carried(x, edges))
         boxed = np.flatnonzero(self.bones[name].in_box(local))
         depth, _, normal, _ = self.bones[name].query(local[boxed])
         near = depth < band
         if not near.any():
             return empty
         edges, boxed = edges[boxed[near]], boxed[near]
-        floor = np.minimum(self._midside_rest_depth(name)[edges], 0.0)
+        floor = np.minimum(mid.rest_depth(name, self.bones[name])[edges], 0.0)
         need = floor - depth[near]  # > 0: the middle must move out this far
         n = tr.apply_vector(normal[near])
         rows, normals, offsets = [], [], []
         for k in range(2):
             keep = listed[edges, k]
-            corner = self._midside_ends[edges[keep], k]
+            corner = mid.ends[edges[keep], k]
             rows.append(slot[edges[keep], k])
             normals.append(n[keep])
             offsets.append(np.einsum("ij,ij->i", n[keep], x[corner]) + need[keep])
         return np.concatenate(rows), np.concatenate(normals), np.concatenate(offsets)
-
-    def _midside_rest_depth(self, name: str) -> NDArray[np.float64]:
-        """Each free mid-side node's signed distance from bone ``name`` at rest (measured
-        once; a coarse tet's edge between two nodes on a curved bone may cut into it in the
-        deck itself)."""
-        if name not in self._midside_depth:
-            surface = self.bones[name]
-            depth = np.full(len(self._midside), np.inf)
-            p = self.rest[self._midside]
-            boxed = surface.in_box(p)
-            depth[boxed] = surface.query(p[boxed])[0]
-            self._midside_depth[name] = depth
-        return self._midside_depth[name]
 
     # ------------------------------------------------------------------ solve
     def energy(
@@ -1345,9 +1309,8 @@ class ElasticRelaxation:
             return x, report
         in_free = np.zeros(self.n_nodes, dtype=bool)
         in_free[free] = True
-        out = self._carry(
-            out, *_free_midside_nodes(self.blocks, in_free, np.flatnonzero(self.is_beyond))
-        )
+        beyond = np.flatnonzero(self.is_beyond)
+        out = _free_midside_nodes(self.blocks, in_free, beyond, self.rest).straighten(out)
         if report is None:
             return out, replace(far, region_seconds=region_seconds, beyond_region_nodes=len(free))
         return out, replace(

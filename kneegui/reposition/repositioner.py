@@ -409,7 +409,7 @@ class Repositioner:
         soft = np.zeros(model.n_nodes, dtype=bool)
         soft[self.groups.soft] = True
         # 10-node tets: every stage places mid-side nodes one by one; they end on their edges
-        self._midside = MidsideNodes(model.blocks.get("tet10"), soft, model.coords)
+        self._midside = MidsideNodes.of_block(model.blocks.get("tet10"), soft, model.coords)
         self._order_contours: SkinContours | None = None  # for blend: the relaxation's order
         self._initial_quality: QualityResult | None = None  # the smoothing's reference
         self._quality_memo: tuple[NDArray[np.float64], QualityResult] | None = None

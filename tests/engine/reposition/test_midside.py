@@ -32,12 +32,20 @@ def _offsets(x: np.ndarray, node: int) -> tuple[float, float]:
     return float(np.sqrt(max(d @ d - tangent**2, 0.0)) / length), abs(tangent) / length
 
 
+def _relaxation(rest: np.ndarray, bone: np.ndarray) -> ElasticRelaxation:
+    """The relaxation of one free 10-node tet beside bone ``femur``."""
+    tets = corner_tetrahedra({"tet10": BLOCK})
+    return ElasticRelaxation(
+        rest, tets, np.arange(10), bones={"femur": bone}, blocks={"tet10": BLOCK}
+    )
+
+
 def test_straighten_puts_each_movable_mid_side_node_back_on_its_edge():
     rest = _tet10([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
     rest[4] += [0.0, -1.0, 0.0]  # a bowed edge keeps its bow
     movable = np.ones(10, dtype=bool)
     movable[9] = False  # e.g. a node of a fixed part: left alone
-    mid = MidsideNodes(BLOCK, movable, rest)
+    mid = MidsideNodes.of_block(BLOCK, movable, rest)
     assert mid.nodes.tolist() == [4, 5, 6, 7, 8]
     mapped = rest.copy()
     mapped[1] += [2.0, 0.0, 0.0]
@@ -48,7 +56,7 @@ def test_straighten_puts_each_movable_mid_side_node_back_on_its_edge():
         assert max(_offsets(out, node)) < 1e-12
     np.testing.assert_array_equal(out[9], mapped[9])
     np.testing.assert_array_equal(out[:4], mapped[:4])
-    assert len(MidsideNodes(None, movable, rest)) == 0
+    assert len(MidsideNodes.of_block(None, movable, rest)) == 0
 
 
 def test_a_mid_side_node_leaves_a_bone_at_right_angles_to_its_edge(box_surface):
@@ -58,7 +66,7 @@ def test_a_mid_side_node_leaves_a_bone_at_right_angles_to_its_edge(box_surface):
     and no deeper than at rest, a node stays."""
     bone = BoneSurfaceDistance(box_surface((-20.0, -20.0, -20.0), (0.0, 0.0, 20.0)))
     rest = _tet10([[1.0, -2, 0], [1.0, 2, 0], [3, 0, 0], [2, 0, 2]])  # outside the bone
-    mid = MidsideNodes(BLOCK, np.ones(10, dtype=bool), rest)
+    mid = MidsideNodes.of_block(BLOCK, np.ones(10, dtype=bool), rest)
     posed = rest.copy()
     posed[0] = [0.0, -2.0, 0.0]  # on the face x = 0
     posed[1] = [-3.0, 0.0, 0.0]  # on the face y = 0: the edge cuts the rim
@@ -76,7 +84,7 @@ def test_a_mid_side_node_leaves_a_bone_at_right_angles_to_its_edge(box_surface):
     # within the tolerance: left as it is
     assert mid.out_of_bones(posed, {"femur": bone}, identity, tolerance=2.0) is posed
     # the same edge round the rim in the deck itself: no deeper than at rest, it stays
-    at_rest = MidsideNodes(BLOCK, np.ones(10, dtype=bool), posed)
+    at_rest = MidsideNodes.of_block(BLOCK, np.ones(10, dtype=bool), posed)
     assert at_rest.out_of_bones(posed, {"femur": bone}, identity, tolerance=0.1) is posed
 
 
@@ -87,13 +95,7 @@ def test_the_relaxation_holds_an_edge_of_a_10_node_tet_out_of_a_bone(box_surface
     rest may stay as deep."""
     tris = box_surface((-20.0, -20.0, -20.0), (0.0, 0.0, 20.0))
     rest = _tet10([[1.0, -2, 0], [1.0, 2, 0], [3, 0, 0], [2, 0, 2]])
-    relax = ElasticRelaxation(
-        rest,
-        corner_tetrahedra({"tet10": BLOCK}),
-        np.arange(10),
-        bones={"femur": tris},
-        blocks={"tet10": BLOCK},
-    )
+    relax = _relaxation(rest, tris)
     posed = rest.copy()
     posed[0] = [0.0, -2.0, 0.0]
     posed[1] = [-3.0, 0.0, 0.0]
@@ -113,13 +115,7 @@ def test_the_relaxation_holds_an_edge_of_a_10_node_tet_out_of_a_bone(box_surface
     assert bone.query(((moved[0] + moved[1]) / 2)[None])[0][0] > -1e-9
     # the deck with that edge round the rim at rest: its middle may stay as deep
     posed[4] = (posed[0] + posed[1]) / 2
-    at_rest = ElasticRelaxation(
-        posed,
-        corner_tetrahedra({"tet10": BLOCK}),
-        np.arange(10),
-        bones={"femur": tris},
-        blocks={"tet10": BLOCK},
-    )
+    at_rest = _relaxation(posed, tris)
     rows, normals, offsets = at_rest._chord_planes(posed, nodes, "femur", identity, band=1.0)
     gaps = np.einsum("ij,ij->i", normals, posed[nodes[rows]]) - offsets
     assert gaps.min() == pytest.approx(0.0, abs=1e-9)
