@@ -66,6 +66,9 @@ def status_line(report: Mapping[str, Any], jacobian: bool = True) -> str:
             beyond = quality.get("beyond_region_nodes", 0)
             if beyond:  # the pass that mends what the mapping degraded far from the joint
                 figures.append(f"{beyond} nodes beyond the relaxed region")
+            settled = quality.get("bone_settled_nodes", 0)
+            if settled:  # tissue the optimisation left in a bone, settled on its own
+                figures.append(f"{settled} nodes settled out of a bone")
             held = quality.get("held_nodes", 0)
             if held:  # the untangling left elements inverted: the stage ran around them
                 figures.append(f"{held} nodes of inverted elements held")

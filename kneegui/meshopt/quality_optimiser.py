@@ -449,6 +449,11 @@ class QualityOptions:
         tet's collapse below this fraction of the worst around the free nodes when the rounds
         ended: a node its planes cannot bring back stays past them rather than flattening the
         elements in its way.
+    settling_floors : (float, float) or None
+        Instead of ``settling_floor``: the corner Jacobian and the tet collapse the settling may
+        take a solid down to, or the worst around the free nodes when the rounds ended where
+        that is lower (nothing is made worse than the worst already there). None:
+        ``settling_floor`` times that worst.
     active_rings, active_shrink : int, float
         After the first round, each round moves only the free nodes within ``active_rings``
         elements of an element still missing an aim the gate holds to the initial model (the
@@ -495,6 +500,7 @@ class QualityOptions:
     tolerance: float = 0.02
     settling_rounds: int = 6
     settling_floor: float = 0.5
+    settling_floors: tuple[float, float] | None = None
     active_rings: int = 2
     active_shrink: float = 0.9
     hold_inverted: bool = True
@@ -542,6 +548,10 @@ class QualityOptimisationReport:
     held_nodes : int
         Nodes of the region held where the untangling left them because an element of theirs
         was still inverted (``QualityOptions.hold_inverted``).
+    bone_settled_nodes : int
+        Nodes a last settling moved around the contact nodes the region's optimisation left
+        deeper in a bone than its constraint tolerance, apart from the rest of the region
+        (kneegui.reposition.relax); its time and iterations are added like the second pass's.
     """
 
     free_nodes: int = 0
@@ -563,6 +573,7 @@ class QualityOptimisationReport:
     active_nodes: list[int] = field(default_factory=list)
     beyond_region_nodes: int = 0
     held_nodes: int = 0
+    bone_settled_nodes: int = 0
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""
@@ -1397,6 +1408,10 @@ def optimise_quality(
             _element_jacobians(pr0, x).min(initial=1.0),
             _tet_collapses(pr0, x).min(initial=1.0),
         )
+        if opt.settling_floors is not None:
+            return tuple(
+                float(np.log(min(f, w))) for f, w in zip(opt.settling_floors, worst, strict=True)
+            )
         return tuple(float(np.log(opt.settling_floor * w)) for w in worst)
 
     def settle(floor: tuple[float, float]) -> float:

@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 from kneegui.errors import raise_if_cancelled
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.reposition.rigid_blend import DIRECT_SOLVE_MAX, block_cg
+from kneegui.reposition.triangle_grid import TriangleGrid
 from kneegui.topology import sorted_unique
 
 #: Points per chunk of a threaded :meth:`BoneSurfaceDistance.query`.
@@ -167,9 +168,13 @@ class BoneSurfaceDistance:
     ----------
     tri_xyz : (T, 3, 3) ndarray
         Outward-oriented surface triangles at rest.
+    exact_within : float
+        Points that may lie closer to the surface than this (model units), and every point
+        inside, get the exact distance; farther ones the distance to the triangles around the
+        nearest surface node, which is at least the exact one (:meth:`query`).
     """
 
-    def __init__(self, tri_xyz: NDArray[np.float64]) -> None:
+    def __init__(self, tri_xyz: NDArray[np.float64], exact_within: float = 0.0) -> None:
         self.tri_xyz = tri_xyz
         flat = tri_xyz.reshape(-1, 3)
         nodes_xyz, inverse = np.unique(flat, axis=0, return_inverse=True)
@@ -184,12 +189,16 @@ class BoneSurfaceDistance:
         self.longest_edge = float(edge.max(initial=0.0))
         # every point of a triangle lies within (longest edge) / sqrt 3 of one of its corners
         self.corner_reach = self.longest_edge / np.sqrt(3.0)
+        # a point whose nearest surface node is farther than this is at least exact_within
+        # from the surface (its closest point lies within corner_reach of a node)
+        self.exact_reach = float(exact_within) + self.corner_reach
         # each triangle's angle at each corner: the weights of the pseudo-normal at a vertex
         u = np.roll(tri_xyz, -1, axis=1) - tri_xyz
         v = np.roll(tri_xyz, 1, axis=1) - tri_xyz
         self.corner_angle = np.arctan2(
             np.linalg.norm(np.cross(u, v), axis=2), np.einsum("tij,tij->ti", u, v)
         )
+        self.grid = TriangleGrid(tri_xyz, self.normal, self.corner_angle, self.longest_edge)
 
     def in_box(self, p: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Which points (M, 3), in the rest frame, lie in the surface's bounding box: those
@@ -236,35 +245,40 @@ class BoneSurfaceDistance:
         ok = tris >= 0
         rows = np.broadcast_to(np.arange(len(p))[:, None], tris.shape)[ok]
         best, point, normals = self._closest(p, rows, tris[ok])
-        # The fan of the nearest surface node holds the closest triangle of a point near the
-        # surface (nearly always; a point over a face's middle may be up to about a millimetre
-        # off on the coarse demo). Far from a curved or concave surface it may not, and the
-        # wrong triangle can give the wrong side: a node 14 mm behind the tibia was reported
-        # 14 mm inside it, where the relaxation's contact would push it to the wrong surface. So
-        # a point the fan puts inside deeper than a triangle's reach is measured exactly: the
-        # closest triangle has every corner within its distance plus its longest edge of the
-        # point, and every node that near is looked at. (Exact everywhere costs several times
-        # the export's contact time.)
+        # The fan of the nearest surface node does not always hold the closest triangle, and
+        # the wrong triangle can give the wrong distance and the wrong side: a node 14 mm
+        # behind the tibia was reported 14 mm inside it (the relaxation's contact would have
+        # pushed it to the wrong surface), and among long, thin triangles (the coarse demo's
+        # tibia has edges of 18 mm) a node 0.07 mm from the surface was measured 4.2 mm away,
+        # beyond the contact's band, and the quality optimisation then pushed it 1 mm into the
+        # bone. (Nor is a closest point inside the fan enough: a segment's surface may be
+        # several closed ones, the tibia's and the fibula's.) So every point the fan puts
+        # inside, and every point that may lie within exact_within of the surface, is measured
+        # exactly (:meth:`_exact`); a farther point is at least exact_within away, and the
+        # fan's distance is at least the exact one.
         side = np.einsum("ij,ij->i", p - point, normals)
-        far = np.flatnonzero((side < 0) & (best > self.corner_reach))
-        if len(far):
-            near_lists = self.tree.query_ball_point(p[far], best[far] + self.longest_edge)
-            counts = np.fromiter((len(n) for n in near_lists), dtype=np.int64, count=len(far))
-            nodes = np.fromiter(
-                (i for n in near_lists for i in n), dtype=np.int64, count=int(counts.sum())
-            )
-            owner = np.repeat(np.arange(len(far)), counts)
-            cand = self.node_tris[nodes]
-            ok = cand >= 0
-            pair = sorted_unique(
-                np.broadcast_to(owner[:, None], cand.shape)[ok] * len(self.tri_xyz) + cand[ok]
-            )
-            rows_f, tris_f = np.divmod(pair, len(self.tri_xyz))
-            b_far, p_far, n_far = self._closest(p[far], rows_f, tris_f)
-            best[far], point[far], normals[far] = b_far, p_far, n_far
+        exact = np.flatnonzero((side < 0) | (node_distance < self.exact_reach))
+        if len(exact):
+            best[exact], point[exact], normals[exact] = self._exact(p[exact], best[exact])
         side = np.einsum("ij,ij->i", p - point, normals)
         sign = np.where(side < 0, -1.0, 1.0)
         return sign * best, point, normals, node_distance
+
+    def _exact(
+        self, p: NDArray[np.float64], bound: NDArray[np.float64]
+    ) -> tuple[NDArray, NDArray, NDArray]:
+        """:meth:`_closest` of points ``p`` (M, 3) among every triangle, given an upper bound
+        (M,) of each point's distance (:class:`~kneegui.reposition.triangle_grid.TriangleGrid`:
+        the exact closest point and pseudo-normal)."""
+        return self.grid.closest(p, bound)
+
+    def certain(self, depth: NDArray[np.float64], node_distance: NDArray[np.float64]) -> NDArray:
+        """A lower bound of the exact signed distance of points :meth:`query` measured as
+        ``depth`` with nearest-node distance ``node_distance``: the depth itself where it is
+        exact, else the distance to the nearest node less the farthest a triangle's point lies
+        from its nearest corner."""
+        estimated = (depth > 0) & (node_distance >= self.exact_reach)
+        return np.where(estimated, np.minimum(depth, node_distance - self.corner_reach), depth)
 
     def _closest(
         self, p: NDArray[np.float64], rows: NDArray[np.int64], tris: NDArray[np.int64]
@@ -274,9 +288,9 @@ class BoneSurfaceDistance:
         once, every row at least once.
 
         The pseudo-normal (Baerentzen & Aanaes 2005) sums the normals of every candidate as
-        close as the best, each weighted by its angle at the closest point when that is one of
-        its corners: with the exact closest point its side is the point's side, where a plain
-        mean of the faces around a saddle-shaped vertex can point the wrong way.
+        close as the best at the same closest point, each weighted by its angle there when
+        that is one of its corners: with the exact closest point its side is the point's side,
+        where a plain mean of the faces around a saddle-shaped vertex can point the wrong way.
         """
         if len(p) == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
@@ -289,7 +303,10 @@ class BoneSurfaceDistance:
         hit = np.flatnonzero(d == best[rows])
         first = hit[np.concatenate([[True], rows[hit][1:] != rows[hit][:-1]])]
         point = q[first]
-        tie = np.flatnonzero(d <= best[rows] * (1 + 1e-9) + 1e-12)
+        # the triangles as close as the best at the same closest point (at a shared edge or
+        # vertex); a point as far from two faces apart (inside a thin plate) takes the first
+        same = np.linalg.norm(q - point[rows], axis=1) <= 1e-9 * max(self.longest_edge, 1e-300)
+        tie = np.flatnonzero((d <= best[rows] * (1 + 1e-9) + 1e-12) & same)
         at_corner = np.linalg.norm(corners[tie] - q[tie, None, :], axis=2)  # (ties, 3)
         j = np.argmin(at_corner, axis=1)
         on_vertex = at_corner[np.arange(len(tie)), j] <= 1e-9 * max(self.longest_edge, 1e-300)
@@ -320,8 +337,9 @@ class DistanceMemo:
     surface : BoneSurfaceDistance
     where : (K, 3) ndarray
         Points (rest frame) whose distance is known.
-    depth : (K,) ndarray
-        Their signed distances.
+    depth, node_distance : (K,) ndarray
+        Their signed distances and nearest-node distances, as :meth:`BoneSurfaceDistance.query`
+        gave them.
     """
 
     def __init__(
@@ -329,10 +347,11 @@ class DistanceMemo:
         surface: BoneSurfaceDistance,
         where: NDArray[np.float64],
         depth: NDArray[np.float64],
+        node_distance: NDArray[np.float64],
     ) -> None:
         self.surface = surface
         self.where = np.array(where, dtype=np.float64, copy=True)
-        self.depth = np.array(depth, dtype=np.float64, copy=True)
+        self.depth = surface.certain(np.asarray(depth, dtype=np.float64), node_distance)
 
     def query(
         self, rows: NDArray[np.int64], p: NDArray[np.float64], beyond: float
@@ -347,10 +366,12 @@ class DistanceMemo:
         point = np.full_like(p, np.nan)
         normal = np.full_like(p, np.nan)
         if measured.any():
-            d, q, n, _ = self.surface.query(p[measured])
+            d, q, n, node_distance = self.surface.query(p[measured])
             depth[measured], point[measured], normal[measured] = d, q, n
             self.where[rows[measured]] = p[measured]
-            self.depth[rows[measured]] = d
+            # a far point's measured distance may be more than the exact one: the bound the
+            # next queries rest on must not be
+            self.depth[rows[measured]] = self.surface.certain(d, node_distance)
         return depth, point, normal, measured
 
 

@@ -503,8 +503,11 @@ class Repositioner:
         """Each moving segment's rest surface for distance queries, built once (the bone contact,
         the relaxation's contact and the bone-overlap check share it)."""
         if self._surfaces is None:
+            # exact as far out as the relaxation's contact looks (its planes' band)
+            relax = self.options.improvement.relax or RelaxOptions()
+            band = relax.contact_band * self.length_scale
             self._surfaces = {
-                name: BoneSurfaceDistance(self.model.coords[tris])
+                name: BoneSurfaceDistance(self.model.coords[tris], exact_within=band)
                 for name, tris in self._bone_triangles().items()
                 if len(tris)
             }

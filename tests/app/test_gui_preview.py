@@ -255,3 +255,7 @@ def test_status_line_quotes_the_tet_collapse_and_the_jacobian_where_it_says_some
     assert "148 nodes beyond the relaxed region, 11 nodes of inverted elements held," in (
         app.smoothing.status_line(report, jacobian=False)
     )
+    quality.update(bone_settled_nodes=240)  # tissue left in a bone was settled on its own
+    assert "148 nodes beyond the relaxed region, 240 nodes settled out of a bone, 11 nodes" in (
+        app.smoothing.status_line(report, jacobian=False)
+    )

@@ -629,3 +629,35 @@ def test_every_question_to_cancel_stops_the_optimisation_and_asking_changes_noth
         with pytest.raises(Cancelled):
             run(cancel)
         assert len(calls) == stop_at  # stopped at that very question
+
+
+def test_settling_floors_keep_every_solid_at_the_given_quality_or_its_worst(block_model):
+    """``settling_floors`` replaces the fraction of the worst: a settling step may take no
+    solid below the given corner Jacobian, or below the worst the rounds ended with where that
+    is lower. The relaxation's last settling of tissue left in a bone uses the worst the
+    quality optimisation left, so the gate's figures do not get worse for it."""
+    model = block_model(4, 4, 4, bone_layers=0, skin=True)
+    coords = model.coords
+    aims = quality_aims(compute_quality(coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(coords - 2.0) < 1.99, axis=1))
+    node = interior[np.argmin(np.linalg.norm(coords[interior] - (3.0, 2.0, 2.0), axis=1))]
+
+    def plane(x):
+        return np.array([node]), np.array([[1.0, 0.0, 0.0]]), np.array([3.5])
+
+    def run(**changes):
+        options = QualityOptions(rounds=0, gate_rounds=0, **changes)
+        out, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=plane,
+                                  options=options)  # fmt: skip
+        return out, compute_quality(out, model.blocks).worst_jacobian()
+
+    # half the worst (1.0 on the undistorted block): reaches the plane at x = 3.5 (0.65)
+    out, worst = run()
+    assert 3.5 - out[node, 0] <= QualityOptions().constraint_tolerance
+    assert 0.5 <= worst < 0.75
+    out, worst = run(settling_floors=(0.8, 1.0))  # held back by the floor (at 3.2)
+    assert worst >= 0.8
+    assert 3.5 - out[node, 0] > 0.2
+    out, worst = run(settling_floors=(1.5, 1.0))  # above the worst: the worst is the floor
+    assert worst >= 1.0 - 1e-12
+    np.testing.assert_array_equal(out, coords)

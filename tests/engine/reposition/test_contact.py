@@ -245,7 +245,8 @@ def test_the_distance_memo_skips_only_points_provably_beyond_its_threshold():
     surface = BoneSurfaceDistance(CUBE[TRIANGLES])
     rng = np.random.default_rng(2)
     start = rng.uniform(-15.0, 25.0, (400, 3))
-    memo = DistanceMemo(surface, start, surface.query(start)[0])
+    d0, _, _, nd0 = surface.query(start)
+    memo = DistanceMemo(surface, start, d0, nd0)
     rows = np.arange(len(start))
     band = 3.0
     for step in range(4):
