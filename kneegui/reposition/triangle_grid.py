@@ -141,10 +141,11 @@ def _box_gap(px, py, pz, x0, y0, z0, x1, y1, z1):  # pragma: no cover - compiled
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _closest_on_triangle(px, py, pz, tri, t):  # pragma: no cover - compiled
     """The closest point of triangle ``t`` to ``(px, py, pz)``: the arithmetic of
-    :func:`kneegui.reposition.contact.closest_on_triangles`, for one pair."""
+    :func:`kneegui.reposition.contact.closest_on_triangles`, for one pair (a degenerate
+    triangle's 0 / 0 is NaN, clipped to 0, as there)."""
     ax, ay, az = tri[t, 0, 0], tri[t, 0, 1], tri[t, 0, 2]
     bx, by, bz = tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2]
     cx, cy, cz = tri[t, 2, 0], tri[t, 2, 1], tri[t, 2, 2]
@@ -185,7 +186,7 @@ def _closest_on_triangle(px, py, pz, tri, t):  # pragma: no cover - compiled
     return ax + v * abx + w * acx, ay + v * aby + w * acy, az + v * abz + w * acz
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _grid_closest(
     p,
     bound,

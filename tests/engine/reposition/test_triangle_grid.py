@@ -84,3 +84,22 @@ def test_farther_points_get_at_least_the_exact_distance_and_the_memo_a_lower_bou
     np.testing.assert_array_equal(np.abs(depth[near]), exact[near])
     memo = DistanceMemo(rock, p, depth, node_distance)
     assert np.all(memo.depth[outside] <= exact[outside] + 1e-12)
+
+
+def test_degenerate_triangles_are_measured_as_the_reference_measures_them(rock):
+    """A damaged deck's bone can hold triangles of zero area (two corners at one point, or
+    three on a line): their 0 / 0 is NaN, clipped as the NumPy reference clips it, not an
+    error (the robustness fuzz found one)."""
+    tri = rock.tri_xyz.copy()
+    tri[0, 1] = tri[0, 0]  # a == b
+    tri[1, 2] = tri[1, 1]  # b == c
+    tri[2, 2] = tri[2, 0]  # c == a
+    tri[3, 1:] = tri[3, 0]  # one point
+    tri[4, 2] = 0.5 * (tri[4, 0] + tri[4, 1])  # three on a line
+    surface = BoneSurfaceDistance(tri)
+    rng = np.random.default_rng(5)
+    p = (tri[:5, None, :, :].mean(axis=2) + rng.normal(0.0, 2.0, (5, 200, 3))).reshape(-1, 3)
+    reference = _brute_force(surface, p)
+    found = surface.grid.closest(p, np.full(len(p), np.inf))
+    for got, want in zip(found, reference, strict=True):
+        np.testing.assert_array_equal(got, want)
