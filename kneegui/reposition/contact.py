@@ -354,19 +354,24 @@ class DistanceMemo:
         self.depth = surface.certain(np.asarray(depth, dtype=np.float64), node_distance)
 
     def query(
-        self, rows: NDArray[np.int64], p: NDArray[np.float64], beyond: float
+        self,
+        rows: NDArray[np.int64],
+        p: NDArray[np.float64],
+        beyond: float,
+        cancel: Callable[[], bool] | None = None,
     ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Points ``p`` (M, 3) in the rest frame, memo slots ``rows`` (M,): signed distance,
         closest point and normal as :meth:`BoneSurfaceDistance.query` where measured; where
         not, a lower bound of the distance above ``beyond`` and NaN point and normal. The
-        fourth output marks the measured points (their slots are updated)."""
+        fourth output marks the measured points (their slots are updated). ``cancel`` is passed
+        to the measure (asked between its waves of points)."""
         moved = np.linalg.norm(p - self.where[rows], axis=1)
         depth = self.depth[rows] - moved
         measured = ~(depth > beyond)
         point = np.full_like(p, np.nan)
         normal = np.full_like(p, np.nan)
         if measured.any():
-            d, q, n, node_distance = self.surface.query(p[measured])
+            d, q, n, node_distance = self.surface.query(p[measured], cancel=cancel)
             depth[measured], point[measured], normal[measured] = d, q, n
             self.where[rows[measured]] = p[measured]
             # a far point's measured distance may be more than the exact one: the bound the

@@ -70,11 +70,11 @@ def mesh_edges(
         return np.unique(np.column_stack([low, high]), axis=0)
     # one int64 key per edge: a 1-D unique sorts numbers, not rows (several times faster);
     # the keys sort as the rows would, so the result is the same array
-    key = _sorted_unique_in_pieces((low << 32) | high, cancel)
+    key = sorted_unique_in_pieces((low << 32) | high, cancel)
     return np.column_stack([key >> 32, key & 0xFFFFFFFF])
 
 
-def _sorted_unique_in_pieces(
+def sorted_unique_in_pieces(
     keys: NDArray[np.int64], cancel: Callable[[], bool] | None
 ) -> NDArray[np.int64]:
     """:func:`sorted_unique` of non-negative keys, in value ranges of equal width sorted one
