@@ -579,6 +579,20 @@ class QualityOptimisationReport:
         """JSON-ready dict."""
         return asdict(self)
 
+    def with_pass(
+        self, other: QualityOptimisationReport, region_seconds: float, **figures: int
+    ) -> QualityOptimisationReport:
+        """This report with a later pass's time and iterations added (``region_seconds``: that
+        pass's search for its nodes) and ``figures`` set; the other figures stay this one's."""
+        return replace(
+            self,
+            seconds=self.seconds + other.seconds,
+            region_seconds=self.region_seconds + region_seconds,
+            iterations=self.iterations + other.iterations,
+            evaluations=self.evaluations + other.evaluations,
+            **figures,
+        )
+
 
 @dataclass(frozen=True)
 class _Problem:

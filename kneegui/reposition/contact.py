@@ -254,23 +254,15 @@ class BoneSurfaceDistance:
         # bone. (Nor is a closest point inside the fan enough: a segment's surface may be
         # several closed ones, the tibia's and the fibula's.) So every point the fan puts
         # inside, and every point that may lie within exact_within of the surface, is measured
-        # exactly (:meth:`_exact`); a farther point is at least exact_within away, and the
+        # exactly (:class:`TriangleGrid`); a farther point is at least exact_within away, and the
         # fan's distance is at least the exact one.
         side = np.einsum("ij,ij->i", p - point, normals)
         exact = np.flatnonzero((side < 0) | (node_distance < self.exact_reach))
         if len(exact):
-            best[exact], point[exact], normals[exact] = self._exact(p[exact], best[exact])
+            best[exact], point[exact], normals[exact] = self.grid.closest(p[exact], best[exact])
         side = np.einsum("ij,ij->i", p - point, normals)
         sign = np.where(side < 0, -1.0, 1.0)
         return sign * best, point, normals, node_distance
-
-    def _exact(
-        self, p: NDArray[np.float64], bound: NDArray[np.float64]
-    ) -> tuple[NDArray, NDArray, NDArray]:
-        """:meth:`_closest` of points ``p`` (M, 3) among every triangle, given an upper bound
-        (M,) of each point's distance (:class:`~kneegui.reposition.triangle_grid.TriangleGrid`:
-        the exact closest point and pseudo-normal)."""
-        return self.grid.closest(p, bound)
 
     def certain(self, depth: NDArray[np.float64], node_distance: NDArray[np.float64]) -> NDArray:
         """A lower bound of the exact signed distance of points :meth:`query` measured as

@@ -1337,14 +1337,7 @@ class ElasticRelaxation:
         _, _, _, after = self._contact_planes(out, deep, transforms, cancel)
         if float(after.min()) <= deepest:
             return x, report
-        return out, replace(
-            report,
-            bone_settled_nodes=len(free),
-            seconds=report.seconds + settled.seconds,
-            region_seconds=report.region_seconds + region_seconds,
-            iterations=report.iterations + settled.iterations,
-            evaluations=report.evaluations + settled.evaluations,
-        )
+        return out, report.with_pass(settled, region_seconds, bone_settled_nodes=len(free))
 
     def _mend_beyond(
         self,
@@ -1396,14 +1389,7 @@ class ElasticRelaxation:
         out = _free_midside_nodes(self.blocks, in_free, beyond, self.rest).straighten(out)
         if report is None:
             return out, replace(far, region_seconds=region_seconds, beyond_region_nodes=len(free))
-        return out, replace(
-            report,
-            beyond_region_nodes=len(free),
-            seconds=report.seconds + far.seconds,
-            region_seconds=report.region_seconds + region_seconds,
-            iterations=report.iterations + far.iterations,
-            evaluations=report.evaluations + far.evaluations,
-        )
+        return out, report.with_pass(far, region_seconds, beyond_region_nodes=len(free))
 
     def _tangent_planes(
         self, x: NDArray[np.float64], nodes: NDArray[np.int64]

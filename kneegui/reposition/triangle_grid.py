@@ -24,8 +24,9 @@ CELLS_PER_TRIANGLE = 4
 #: Relative and absolute slack within which two distances count as the same (a tie: the
 #: pseudo-normal sums the normals of every tied triangle), as in ``BoneSurfaceDistance``.
 TIE_RELATIVE, TIE_ABSOLUTE = 1e-9, 1e-12
-#: Tied triangles one point keeps (a vertex of that many triangles is far beyond any mesh).
-MAX_TIES = 64
+#: Triangles within reach one point keeps as candidates for the ties (when full, those out of
+#: reach of the best so far are dropped first).
+MAX_CANDIDATES = 256
 
 
 class TriangleGrid:
@@ -206,8 +207,12 @@ def _grid_closest(
 ):  # pragma: no cover - compiled
     """:meth:`TriangleGrid.closest`: for each point, the cells in Chebyshev rings around its
     (clamped) cell until the next ring lies farther than the best distance found (a cell ``R``
-    rings out is at least ``R - 1`` cells away), then the same rings again for the ties (as
-    near, at the same closest point)."""
+    rings out is at least ``R - 1`` cells away). Every triangle measured within the slack of
+    the best so far is kept as a candidate: the best only shrinks, so the ties of the final
+    best (as near, at the same closest point) are among them."""
+    cand_t = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    cand_q = np.empty((MAX_CANDIDATES, 3))
+    cand_d = np.empty(MAX_CANDIDATES)
     for m in range(p.shape[0]):
         px, py, pz = p[m, 0], p[m, 1], p[m, 2]
         ci = min(max(math.floor((px - lo[0]) / cell), 0), dims[0] - 1)
@@ -218,12 +223,12 @@ def _grid_closest(
         best = math.inf
         best_t = -1
         qx = qy = qz = math.nan
-        rings = 0
+        n_cand = 0
+        reach = cutoff
         for r in range(widest + 1):
             # a tie may be up to the tie slack farther than the best
-            if r >= 1 and (r - 1) * cell > min(best * (1.0 + TIE_RELATIVE) + TIE_ABSOLUTE, cutoff):
+            if r >= 1 and (r - 1) * cell > reach:
                 break
-            rings = r + 1
             for i in range(max(ci - r, 0), min(ci + r, dims[0] - 1) + 1):
                 for j in range(max(cj - r, 0), min(cj + r, dims[1] - 1) + 1):
                     inner = abs(i - ci) < r and abs(j - cj) < r
@@ -233,7 +238,6 @@ def _grid_closest(
                             k = ck + r  # only the ring's two faces along k
                             continue
                         c = (i * dims[1] + j) * dims[2] + k
-                        reach = min(best * (1.0 + TIE_RELATIVE) + TIE_ABSOLUTE, cutoff)
                         x0, y0, z0 = lo[0] + i * cell, lo[1] + j * cell, lo[2] + k * cell
                         if (
                             _box_gap(px, py, pz, x0, y0, z0, x0 + cell, y0 + cell, z0 + cell)
@@ -249,70 +253,61 @@ def _grid_closest(
                             x, y, z = _closest_on_triangle(px, py, pz, tri, t)
                             dx, dy, dz = px - x, py - y, pz - z
                             d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                            if d > reach:
+                                continue
                             if d < best or (d == best and t < best_t):
                                 best, best_t = d, t
                                 qx, qy, qz = x, y, z
                                 reach = min(best * (1.0 + TIE_RELATIVE) + TIE_ABSOLUTE, cutoff)
+                            if n_cand == MAX_CANDIDATES:  # drop those now out of reach
+                                kept = 0
+                                for u in range(n_cand):
+                                    if cand_d[u] <= reach:
+                                        cand_t[kept], cand_d[kept] = cand_t[u], cand_d[u]
+                                        cand_q[kept] = cand_q[u]
+                                        kept += 1
+                                n_cand = kept
+                            if n_cand < MAX_CANDIDATES:
+                                cand_t[n_cand], cand_d[n_cand] = t, d
+                                cand_q[n_cand, 0], cand_q[n_cand, 1] = x, y
+                                cand_q[n_cand, 2] = z
+                                n_cand += 1
                         k += 1
         best_out[m] = best
         point_out[m, 0], point_out[m, 1], point_out[m, 2] = qx, qy, qz
         # the ties, each triangle once, their normals summed in triangle order
-        ties = np.empty(MAX_TIES, dtype=np.int64)
-        weights = np.empty(MAX_TIES)
-        n_ties = 0
         limit = best * (1.0 + TIE_RELATIVE) + TIE_ABSOLUTE
-        for r in range(rings):
-            for i in range(max(ci - r, 0), min(ci + r, dims[0] - 1) + 1):
-                for j in range(max(cj - r, 0), min(cj + r, dims[1] - 1) + 1):
-                    inner = abs(i - ci) < r and abs(j - cj) < r
-                    k = max(ck - r, 0)
-                    while k <= min(ck + r, dims[2] - 1):
-                        if inner and abs(k - ck) < r:
-                            k = ck + r
-                            continue
-                        c = (i * dims[1] + j) * dims[2] + k
-                        x0, y0, z0 = lo[0] + i * cell, lo[1] + j * cell, lo[2] + k * cell
-                        if (
-                            _box_gap(px, py, pz, x0, y0, z0, x0 + cell, y0 + cell, z0 + cell)
-                            > limit
-                        ):
-                            k += 1
-                            continue
-                        for s in range(start[c], start[c + 1]):
-                            t = items[s]
-                            b = boxes[t]
-                            if _box_gap(px, py, pz, b[0], b[1], b[2], b[3], b[4], b[5]) > limit:
-                                continue
-                            x, y, z = _closest_on_triangle(px, py, pz, tri, t)
-                            dx, dy, dz = px - x, py - y, pz - z
-                            if math.sqrt(dx * dx + dy * dy + dz * dz) > limit:
-                                continue
-                            # at the same closest point (a shared edge or vertex) only
-                            sx, sy, sz = x - qx, y - qy, z - qz
-                            if math.sqrt(sx * sx + sy * sy + sz * sz) > vertex_tolerance:
-                                continue
-                            seen = False
-                            for u in range(n_ties):
-                                if ties[u] == t:
-                                    seen = True
-                                    break
-                            if seen or n_ties == MAX_TIES:
-                                continue
-                            # at a corner: that corner's angle, else pi (as _closest)
-                            nearest, at = math.inf, 0
-                            for v in range(3):
-                                ex = tri[t, v, 0] - x
-                                ey = tri[t, v, 1] - y
-                                ez = tri[t, v, 2] - z
-                                e = math.sqrt(ex * ex + ey * ey + ez * ez)
-                                if e < nearest:
-                                    nearest, at = e, v
-                            ties[n_ties] = t
-                            weights[n_ties] = (
-                                corner_angle[t, at] if nearest <= vertex_tolerance else math.pi
-                            )
-                            n_ties += 1
-                        k += 1
+        ties = np.empty(n_cand, dtype=np.int64)
+        weights = np.empty(n_cand)
+        n_ties = 0
+        for u in range(n_cand):
+            t = cand_t[u]
+            if cand_d[u] > limit:
+                continue
+            x, y, z = cand_q[u, 0], cand_q[u, 1], cand_q[u, 2]
+            # at the same closest point (a shared edge or vertex) only
+            sx, sy, sz = x - qx, y - qy, z - qz
+            if math.sqrt(sx * sx + sy * sy + sz * sz) > vertex_tolerance:
+                continue
+            seen = False
+            for v in range(n_ties):
+                if ties[v] == t:
+                    seen = True
+                    break
+            if seen:  # listed in several cells
+                continue
+            # at a corner: that corner's angle, else pi (as _closest)
+            nearest, at = math.inf, 0
+            for v in range(3):
+                ex = tri[t, v, 0] - x
+                ey = tri[t, v, 1] - y
+                ez = tri[t, v, 2] - z
+                e = math.sqrt(ex * ex + ey * ey + ez * ez)
+                if e < nearest:
+                    nearest, at = e, v
+            ties[n_ties] = t
+            weights[n_ties] = corner_angle[t, at] if nearest <= vertex_tolerance else math.pi
+            n_ties += 1
         order = np.argsort(ties[:n_ties])
         nx = ny = nz = 0.0
         for u in range(n_ties):
