@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from kneegui.errors import Cancelled
+from kneegui.meshopt import quality_optimiser
 from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_aims, face_shape_penalty
 from kneegui.meshopt.quality_optimiser import (
     QualityAims,
@@ -359,6 +360,30 @@ def test_shortfall_region_is_around_the_elements_that_miss_an_aim(block_model):
     grown = shortfall_region(coords, model.blocks, aims, everything, rings=1)
     assert set(around) < set(grown)
     assert len(shortfall_region(coords, model.blocks, aims, np.array([0]), rings=1)) == 0
+
+
+def test_shortfall_region_measures_in_chunks_and_asks_to_cancel_between_them(
+    block_model, monkeypatch
+):
+    """The whole region of a whole-body model is seconds of measuring: the same region in
+    chunks of any size, a cancel between two of them."""
+    model = block_model(5, 5, 5, bone_layers=1, skin=False)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    everything = np.arange(model.n_nodes)
+    coords = model.coords.copy()
+    for corner in (0.5, 2.5, 4.0):  # three nodes pushed off: elements far apart miss aims
+        coords[np.argmin(np.linalg.norm(coords - corner, axis=1))] += (0.45, 0.4, 0.0)
+    whole = shortfall_region(coords, model.blocks, aims, everything, rings=1)
+    assert 0 < len(whole) < model.n_nodes
+    asked = []
+    monkeypatch.setattr(quality_optimiser, "REGION_CHUNK", 7)
+    chunked = shortfall_region(
+        coords, model.blocks, aims, everything, rings=1, cancel=lambda: asked.append(1) or False
+    )
+    np.testing.assert_array_equal(chunked, whole)
+    assert len(asked) >= len(model.blocks["hex8"].ids) // 7
+    with pytest.raises(Cancelled):
+        shortfall_region(coords, model.blocks, aims, everything, cancel=lambda: len(asked) > 0)
 
 
 def test_without_shape_aims_the_region_is_around_the_jacobian_misses_alone(block_model):

@@ -1,11 +1,15 @@
-"""The pose report's volume-change figures, recomputed independently from element volumes."""
+"""The pose report's volume-change figures, recomputed independently from element volumes; the
+export keeps the soft tissue's volume around a tangle the untangling leaves."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from kneegui.meshopt.chain import ImprovementOptions
+from kneegui.meshopt.foldover import RelaxOptions
 from kneegui.quality import compute_quality
+from kneegui.reposition import Repositioner, RepositionOptions
 from kneegui.reposition.pipeline import VOLUME_CHANGE_COUNTS_PCT, pose_model
 from kneegui.reposition.repositioner import SOFT_ROLES
 from kneegui.topology import SOLID_TYPES
@@ -38,3 +42,24 @@ def test_volume_change_distribution_matches_the_element_volumes(
     # the tissue really changed, and the largest change bounds the distribution
     assert 0 < report["soft_element_median_abs_pct"] <= report["soft_element_p95_abs_pct"]
     assert report["soft_element_p95_abs_pct"] <= abs(report["max_element_pct"]) + 1e-9
+
+
+def test_a_tangle_the_untangling_leaves_does_not_hold_back_the_rest_of_the_region(
+    small_leg, small_setup
+):
+    """An untangling cut short at one round leaves 13 corners inverted on the coarse demo at
+    90 deg. The quality stage still brings the rest of the region's soft tissue back to its
+    volume: the 95th percentile of the soft solids' volume change 23.9 % (the untangled export:
+    24.0 %). Before, it moved only the nodes around those past their constraints, and the rest
+    stayed where the untangling left it: 37.1 %."""
+    untangling = RelaxOptions(max_rounds=1, restarts=0)
+    rep = Repositioner(
+        small_leg.model,
+        small_setup,
+        RepositionOptions(improvement=ImprovementOptions(relax=untangling)),
+    )
+    posed = pose_model(rep, 90.0)
+    relaxation = posed.report["relaxation"]
+    assert relaxation["inverted_corners_after"] > 0  # the case this test is about
+    assert relaxation["quality"]["held_nodes"] > 0
+    assert posed.report["volume_change"]["soft_element_p95_abs_pct"] <= 30.0
