@@ -130,6 +130,11 @@ class ImprovementRegion(Protocol):
         ...
 
 
+def progress_span(progress: ProgressCallback, lo: float, hi: float) -> ProgressCallback:
+    """``progress`` for a part of a stage: its fractions 0 to 1 reported as ``lo`` to ``hi``."""
+    return lambda fraction, message: progress(lo + (hi - lo) * fraction, message)
+
+
 #: Share of the progress bar of each stage (the smoothing's only when it runs).
 _SPANS = {"untangle": (0.0, 0.8), "quality": (0.8, 0.9), "smooth": (0.5, 1.0)}
 
@@ -169,7 +174,7 @@ def improve_region(
         lo, hi = _SPANS[stage]
         if stage != "smooth":
             lo, hi = lo * squeeze, hi * squeeze
-        return lambda fraction, message: report_progress(lo + (hi - lo) * fraction, message)
+        return progress_span(report_progress, lo, hi)
 
     x, relaxation = np.array(coords, dtype=np.float64, copy=True), None
     if options.relax is not None:

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from kneegui.errors import Cancelled, GeometryError, raise_if_cancelled
 from kneegui.geometry.transforms import RigidTransform
-from kneegui.meshopt.chain import ImprovementOptions, improve_region
+from kneegui.meshopt.chain import ImprovementOptions, improve_region, progress_span
 from kneegui.meshopt.foldover import (
     FoldoverEnergy,
     RelaxOptions,
@@ -86,11 +86,6 @@ TANGLE_FLAT_BELOW = 0.05
 #: Where the virtual apex of a shell's tetrahedra sits, from the shell's centroid (0) to the
 #: centroid of the solid it covers (1).
 APEX_DEPTH = 0.3
-
-
-def progress_span(progress: ProgressCallback, lo: float, hi: float) -> ProgressCallback:
-    """``progress`` for a part of a stage: its fractions 0 to 1 reported as ``lo`` to ``hi``."""
-    return lambda fraction, message: progress(lo + (hi - lo) * fraction, message)
 
 
 def row_labels(keys: NDArray[np.int64], n_nodes: int) -> NDArray[np.int64]:
