@@ -602,6 +602,16 @@ class QualityOptimisationReport:
         """JSON-ready dict."""
         return asdict(self)
 
+    def floors(self) -> tuple[float, float]:
+        """The worst corner Jacobian and tet collapse this pass left (1.0 where it measured
+        none): a later pass's ``QualityOptions.settling_floors``, so that what the gate
+        measures does not get worse."""
+        jacobian, collapse = self.worst_after, self.collapse_worst_after
+        return (
+            jacobian if np.isfinite(jacobian) else 1.0,
+            collapse if np.isfinite(collapse) else 1.0,
+        )
+
     def with_pass(
         self, other: QualityOptimisationReport, region_seconds: float, **figures: int
     ) -> QualityOptimisationReport:

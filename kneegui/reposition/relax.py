@@ -1379,10 +1379,7 @@ class ElasticRelaxation:
         region_seconds = time.perf_counter() - t
         if not len(free):
             return x, report
-        floors = tuple(
-            value if np.isfinite(value) else 1.0
-            for value in (report.worst_after, report.collapse_worst_after)
-        )
+        floors = report.floors()
         try:
             out, more, _, _ = self._optimise_region(
                 x, free, transforms, replace(options, settling_floors=floors), progress, cancel
@@ -1443,10 +1440,7 @@ class ElasticRelaxation:
         region_seconds = time.perf_counter() - t
         # no solid below the worst the region's optimisation left (nor below its own worst
         # now, where that is lower): what the gate measures does not get worse
-        floors = tuple(
-            value if np.isfinite(value) else 1.0
-            for value in (report.worst_after, report.collapse_worst_after)
-        )
+        floors = report.floors()
         try:
             out, settled = optimise_quality(
                 x,
