@@ -159,7 +159,11 @@ class RepositionOptions:
     volume_change : float or None
         In the quality optimisation, every soft solid element aims to keep its volume within
         ``1 + volume_change`` times its initial volume, either way (None: no limit, and the
-        optimiser may shrink an element whose proportions stay good). Tighter aims trade volume
+        optimiser may shrink an element whose proportions stay good). The penalty is soft, so
+        the aim sits a margin under what the export is held to (issue 23: the 95th percentile of
+        the soft solids' volume change at most 25 % at 90 deg): with 0.2 that percentile settled
+        at 23.5-25.2 % on the coarse hex variants, on the bound; with 0.15 at 20.9-22.2 %
+        (docs/repositioning.md, *Volume kept element by element*). Tighter aims trade volume
         against the bone contact (docs/repositioning.md, known limits).
     contour_margin : float or None
         In the quality optimisation, every skin contour keeps at least this far (model units)
@@ -207,7 +211,7 @@ class RepositionOptions:
     relax_reach: float = 5.0
     relax_region: float = 1.0
     improvement: ImprovementOptions = field(default_factory=ImprovementOptions)
-    volume_change: float | None = 0.2
+    volume_change: float | None = 0.15
     contour_margin: float | None = 0.5
 
     def __post_init__(self) -> None:

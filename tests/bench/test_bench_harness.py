@@ -256,3 +256,8 @@ def test_export_table_accounts_for_the_time_outside_the_timed_stages():
     lines = export_bench.markdown({"runs": [bones, run]})
     row = [line for line in lines if "soft-tissue nodes in a bone" in line]
     assert len(row) == 1 and row[0].endswith("| 316 (4.65 mm) | not recorded |")
+    # so is the soft solids' volume change
+    volume = {**run, "p95_volume_change_pct": 62.84}
+    lines = export_bench.markdown({"runs": [volume, run]})
+    row = [line for line in lines if "volume change" in line]
+    assert len(row) == 1 and row[0].endswith("| 62.8 % | not recorded |")
