@@ -1400,7 +1400,9 @@ def optimise_quality(
         monitor = round_monitor(
             should_cancel,
             report_progress,
-            lambda done: min(1.0, (rounds + done) / opt.rounds),
+            # settling alone (``rounds=0``, the relaxation's settling of tissue left in a bone)
+            # has no rounds to count against
+            lambda done: min(1.0, (rounds + done) / max(opt.rounds, 1)),
             "optimising element quality",
             "quality optimisation cancelled",
         )

@@ -686,3 +686,35 @@ def test_settling_floors_keep_every_solid_at_the_given_quality_or_its_worst(bloc
     out, worst = run(settling_floors=(1.5, 1.0))  # above the worst: the worst is the floor
     assert worst >= 1.0 - 1e-12
     np.testing.assert_array_equal(out, coords)
+
+
+def test_settling_alone_reports_progress(block_model, monkeypatch):
+    """With ``rounds=0`` (the relaxation's settling of tissue left in a bone) a settling round
+    that ran longer than the progress interval (0.25 s) divided by the zero rounds: the 177k
+    demo's export died of a ZeroDivisionError with a solver change tried on 6 December, whose
+    path reached that settling. Progress is now reported on every iteration here, and the
+    settling ends as it does without it."""
+    from kneegui.meshopt import lbfgs
+
+    model = block_model(4, 4, 4, bone_layers=0, skin=True)
+    coords = model.coords
+    aims = quality_aims(compute_quality(coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(coords - 2.0) < 1.99, axis=1))
+    node = interior[np.argmin(np.linalg.norm(coords[interior] - (3.0, 2.0, 2.0), axis=1))]
+
+    def plane(x):
+        return np.array([node]), np.array([[1.0, 0.0, 0.0]]), np.array([3.5])
+
+    options = QualityOptions(rounds=0, gate_rounds=0)
+    quiet, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=plane,
+                                options=options)  # fmt: skip
+    monkeypatch.setattr(lbfgs, "PROGRESS_INTERVAL_S", 0.0)
+    fractions = []
+
+    def progress(fraction, message):
+        fractions.append(fraction)
+
+    out, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=plane,
+                              options=options, progress=progress)  # fmt: skip
+    assert fractions and all(0.0 <= f <= 1.0 for f in fractions)
+    np.testing.assert_array_equal(out, quiet)
