@@ -613,7 +613,7 @@ class QualityOptimisationReport:
         )
 
     def with_pass(
-        self, other: QualityOptimisationReport, region_seconds: float, **figures: int
+        self, other: QualityOptimisationReport, region_seconds: float, **figures: float
     ) -> QualityOptimisationReport:
         """This report with a later pass's time and iterations added (``region_seconds``: that
         pass's search for its nodes) and ``figures`` set; the other figures stay this one's."""

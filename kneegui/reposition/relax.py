@@ -1388,8 +1388,9 @@ class ElasticRelaxation:
             return x, report
         if more.below_aim_after >= more.below_aim_before:
             return x, report
-        return out, replace(
-            report.with_pass(more, region_seconds),
+        return out, report.with_pass(
+            more,
+            region_seconds,
             free_nodes=report.free_nodes + more.free_nodes,
             below_aim_after=more.below_aim_after,
             worst_after=more.worst_after,

@@ -656,11 +656,9 @@ def test_every_question_to_cancel_stops_the_optimisation_and_asking_changes_noth
         assert len(calls) == stop_at  # stopped at that very question
 
 
-def test_settling_floors_keep_every_solid_at_the_given_quality_or_its_worst(block_model):
-    """``settling_floors`` replaces the fraction of the worst: a settling step may take no
-    solid below the given corner Jacobian, or below the worst the rounds ended with where that
-    is lower. The relaxation's last settling of tissue left in a bone uses the worst the
-    quality optimisation left, so the gate's figures do not get worse for it."""
+def _block_with_a_plane(block_model):
+    """A 4^3 block with skin, its aims and interior nodes, and a plane ``x >= 3.5`` for the
+    interior node nearest (3, 2, 2): settling it there takes its elements down to about 0.65."""
     model = block_model(4, 4, 4, bone_layers=0, skin=True)
     coords = model.coords
     aims = quality_aims(compute_quality(coords, model.blocks), model.blocks)
@@ -669,6 +667,17 @@ def test_settling_floors_keep_every_solid_at_the_given_quality_or_its_worst(bloc
 
     def plane(x):
         return np.array([node]), np.array([[1.0, 0.0, 0.0]]), np.array([3.5])
+
+    return model, aims, interior, node, plane
+
+
+def test_settling_floors_keep_every_solid_at_the_given_quality_or_its_worst(block_model):
+    """``settling_floors`` replaces the fraction of the worst: a settling step may take no
+    solid below the given corner Jacobian, or below the worst the rounds ended with where that
+    is lower. The relaxation's last settling of tissue left in a bone uses the worst the
+    quality optimisation left, so the gate's figures do not get worse for it."""
+    model, aims, interior, node, plane = _block_with_a_plane(block_model)
+    coords = model.coords
 
     def run(**changes):
         options = QualityOptions(rounds=0, gate_rounds=0, **changes)
@@ -696,14 +705,8 @@ def test_settling_alone_reports_progress(block_model, monkeypatch):
     settling ends as it does without it."""
     from kneegui.meshopt import lbfgs
 
-    model = block_model(4, 4, 4, bone_layers=0, skin=True)
+    model, aims, interior, _, plane = _block_with_a_plane(block_model)
     coords = model.coords
-    aims = quality_aims(compute_quality(coords, model.blocks), model.blocks)
-    interior = np.flatnonzero(np.all(np.abs(coords - 2.0) < 1.99, axis=1))
-    node = interior[np.argmin(np.linalg.norm(coords[interior] - (3.0, 2.0, 2.0), axis=1))]
-
-    def plane(x):
-        return np.array([node]), np.array([[1.0, 0.0, 0.0]]), np.array([3.5])
 
     options = QualityOptions(rounds=0, gate_rounds=0)
     quiet, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=plane,
