@@ -83,6 +83,8 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
     for e in range(elem_ptr.shape[0] - 1):
         p0 = elem_ptr[e]
         k = elem_ptr[e + 1] - p0
+        lo = math.inf
+        hi = 0.0
         for i in range(k):
             c = corners[p0 + i]
             ax, ay, az, bx, by, bz, ex, ey, ez = _corner_vectors(x, c)
@@ -90,17 +92,31 @@ def corner_ratio_penalty(  # pragma: no cover - compiled
             if not d > 0.0:
                 return math.inf
             dets[i] = d
-            logs[i] = math.log(d)
             g_log[i] = 0.0
+            lo = min(lo, d)
+            hi = max(hi, d)
         aim = log_aim[e]
         tet_weight = element_weight[e]
-        for i in range(k):
-            for j in range(k):
-                u = aim - logs[i] + logs[j]
-                if i != j and u > 0.0:
-                    total += tet_weight * u * u
-                    g_log[i] -= 2.0 * tet_weight * u
-                    g_log[j] += 2.0 * tet_weight * u
+        # the logarithms only where a term may be active: a pair of corners only when the
+        # largest over the smallest determinant comes within a relative 1e-9 of 1 / aim (far
+        # beyond the logs' rounding, so every element skipped adds exactly nothing, as before)
+        pairs = k > 1 and aim > -math.inf and hi > lo * math.exp(-aim) * (1.0 - 1e-9)
+        tet_terms = k == 1 and (
+            log_collapse_aim[e] > -math.inf
+            or log_sine_aim[e] > -math.inf
+            or log_ratio_aim[e] > -math.inf
+        )
+        if pairs or tet_terms:
+            for i in range(k):
+                logs[i] = math.log(dets[i])
+        if pairs:
+            for i in range(k):
+                for j in range(k):
+                    u = aim - logs[i] + logs[j]
+                    if i != j and u > 0.0:
+                        total += tet_weight * u * u
+                        g_log[i] -= 2.0 * tet_weight * u
+                        g_log[j] += 2.0 * tet_weight * u
         if k == 1 and (log_collapse_aim[e] > -math.inf or log_sine_aim[e] > -math.inf):
             c = corners[p0]
             for f in range(4):

@@ -24,6 +24,7 @@ from kneegui.meshopt.quality_optimiser import (
 )
 from kneegui.model import ElementBlock
 from kneegui.quality import compute_quality
+from kneegui.quality.kernels import corner_determinants
 
 CUBE = np.array(
     [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)],
@@ -114,6 +115,33 @@ def test_compiled_corner_penalty_equals_numpy_reference_and_finite_differences(v
             - corner_ratio_penalty_numpy(minus, *reference)[0]
         ) / (2 * h)
         assert numeric == pytest.approx(ref_grad[i, k], abs=1e-6)
+
+
+@pytest.mark.parametrize("offset", [1e-6, 1e-11, -1e-11, -1e-6])
+def test_corner_penalty_at_its_aim_matches_reference(offset):
+    """The kernel takes the corners' logarithms only where the determinants' spread comes
+    near the aim: an element just inside its aim (within the shortcut's 1e-9 margin and
+    beyond it) costs exactly nothing, one just past it costs what the reference says."""
+    coords, blocks = mixed_blocks()
+    blocks = {"hex8": blocks["hex8"]}
+    coords = coords[:8]
+    det = corner_determinants(coords[blocks["hex8"].conn], "hex8")
+    jacobian = det.min() / det.max()
+    aims = uniform_aims(blocks, jacobian * (1.0 + offset))
+    options = QualityOptions(margin=0.0)  # the aim itself, not a margin above it
+    pr = _build_problem(blocks, len(coords), np.arange(len(coords)), aims, options)
+    compiled, reference = corner_args(pr)
+    x = coords[pr.nodes]
+    grad = np.zeros_like(x)
+    value = corner_ratio_penalty(x, *compiled, grad)
+    ref, ref_grad = corner_ratio_penalty_numpy(x, *reference)
+    if offset < 0:  # the aim below the element's Jacobian
+        assert value == 0.0 and ref == 0.0
+        assert not grad.any()
+    else:
+        assert value > 0.0
+        assert value == pytest.approx(ref, rel=1e-6)
+        np.testing.assert_allclose(grad, ref_grad, rtol=1e-6, atol=1e-14)
 
 
 def test_face_penalty_gradient_matches_finite_differences():
