@@ -135,6 +135,17 @@ class RelaxOptions:
         rounds in a row ends there (restarts, or stops after the last). When corners are still
         inverted at the end, the relaxation keeps the round that left the fewest (of any
         attempt).
+    slow_eps_decrease : float
+        When the rounds and restarts leave corners inverted, a last pass starts the nodes within
+        ``slow_rings`` mesh edges of them again from the pose, with ``eps`` falling more slowly
+        (this floor of the relative decrease per round instead of ``eps_decrease``), and its
+        result is kept if it leaves fewer corners inverted (0: no such pass). With the fast
+        schedule the barrier stiffens before a fold deep in pinched tissue is undone (the leg
+        built at 20 deg, posed to 120 deg, kept 5 corners at ``det J`` about ``-eps`` round
+        after round); over the whole region, the slow schedule costs rounds everywhere (the
+        20k demo at 120 deg: 12 rounds instead of 7) and ran out of them at 177k.
+    slow_rings : int
+        Mesh edges around the inverted corners' nodes that the slow pass moves.
     slide_skin : bool or None
         Skin nodes move only in the tangent plane of the pose being relaxed (the sliding nodes
         given to :class:`ElasticRelaxation`; ``None`` slides them there too).
@@ -164,6 +175,8 @@ class RelaxOptions:
     restart_rings: int = 4
     focus_rings: int = 10
     stall_rounds: int = 4
+    slow_eps_decrease: float = 0.3
+    slow_rings: int = 10
     slide_skin: bool | None = None
 
     def __post_init__(self) -> None:
@@ -186,6 +199,11 @@ class RelaxOptions:
         if not 0 < self.eps_decrease < 1:
             raise ValueError(
                 f"RelaxOptions.eps_decrease must be in (0, 1), not {self.eps_decrease}"
+            )
+        if not 0 <= self.slow_eps_decrease < 1 or self.slow_rings < 1:
+            raise ValueError(
+                "RelaxOptions needs slow_eps_decrease in [0, 1) (0: no slow pass) and"
+                f" slow_rings >= 1, not {self.slow_eps_decrease} and {self.slow_rings}"
             )
 
     def scaled(self, length: float) -> RelaxOptions:
@@ -223,6 +241,9 @@ class RelaxReport:
     region_seconds: float = 0.0  # finding the degraded region (part of ``seconds``)
     history: list[dict[str, float]] = field(default_factory=list)
     quality: QualityOptimisationReport | None = None  # what the quality optimisation did
+    #: the slow pass around what stayed inverted (``RelaxOptions.slow_eps_decrease``), if it ran:
+    #: its nodes, rounds, the inverted corners before and after it, and whether it was kept
+    slow_pass: dict[str, float | int | bool] | None = None
 
     def to_dict(self) -> dict[str, object]:
         """JSON-ready summary."""

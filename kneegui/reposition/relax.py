@@ -871,18 +871,75 @@ class ElasticRelaxation:
         report.free_nodes = len(free)
         d_min = np.inf  # nothing tangled
         if len(free):
-            x, d_min = self._minimise_energy(
-                x,
-                free,
-                transforms if use_contact else None,
-                # without blocks and aims there is no quality optimisation to hand over to
-                stop_when_untangled and self.blocks is not None and self.aims is not None,
-                report,
-                progress,
-                cancel,
+            pose = x.copy()
+            contact_transforms = transforms if use_contact else None
+            # without blocks and aims there is no quality optimisation to hand over to
+            optimise_next = (
+                stop_when_untangled and self.blocks is not None and self.aims is not None
             )
+            x, d_min = self._minimise_energy(
+                x, free, contact_transforms, optimise_next, report, progress, cancel
+            )
+            if d_min <= 0 and self.options.slow_eps_decrease > 0:
+                x, d_min = self._slow_pass(
+                    pose, x, free, contact_transforms, optimise_next, report, progress, cancel
+                )
         x = self.carry_midside(coords, x)
         return self.midside_out_of_bones(x, transforms if use_contact else None), report, d_min > 0
+
+    def _slow_pass(
+        self,
+        pose: NDArray[np.float64],
+        x: NDArray[np.float64],
+        free: NDArray[np.int64],
+        transforms: Mapping[str, RigidTransform] | None,
+        optimise_next: bool,
+        report: RelaxReport,
+        report_progress: ProgressCallback,
+        should_cancel: Callable[[], bool],
+    ) -> tuple[NDArray[np.float64], float]:
+        """The last pass when the rounds and restarts left corners inverted at ``x``: the free
+        nodes within ``slow_rings`` of them start again from ``pose`` and run the rounds with
+        ``eps`` falling more slowly (:class:`RelaxOptions`); the rest of the region keeps
+        ``x``. Returns whichever of the two leaves fewer corners of the region inverted (then
+        the larger smallest det J), and records the pass in ``report.slow_pass`` (its rounds are
+        not counted in ``report.rounds``, which are the first pass's)."""
+        opt = self.options
+        whole = self.energy(free, should_cancel)
+        _, _, det = whole.energy(x[whole.nodes], 1e-9)
+        stuck = whole.nodes[self._stuck_nodes(whole, det)]
+        region = self._within_rings(stuck, opt.slow_rings, free)
+        start = x.copy()
+        start[region] = pose[region]
+        second = RelaxReport()
+
+        def progress(fraction: float, message: str) -> None:
+            report_progress(fraction, f"{message} (slow pass around what stayed inverted)")
+
+        slow = replace(opt, eps_decrease=opt.slow_eps_decrease)
+        x_slow, _ = self._minimise_energy(
+            start, region, transforms, optimise_next, second, progress, should_cancel, slow
+        )
+        _, _, det_slow = whole.energy(x_slow[whole.nodes], 1e-9)
+        before = (int(np.sum(det <= 0)), -float(det.min()))
+        after = (int(np.sum(det_slow <= 0)), -float(det_slow.min()))
+        kept = after < before
+        report.slow_pass = {
+            "nodes": len(region),
+            "rounds": second.rounds,
+            "restarts": second.restarts,
+            "iterations": second.iterations,
+            "inverted_corners_before": before[0],
+            "inverted_corners_after": after[0],
+            "kept": kept,
+        }
+        if not kept:
+            return x, -before[1]
+        report.min_det_after = -after[1]
+        report.inverted_corners_after = after[0]
+        report.contact_released = second.contact_released
+        report.sliding_released = second.sliding_released
+        return x_slow, -after[1]
 
     def _minimise_energy(
         self,
@@ -893,12 +950,14 @@ class ElasticRelaxation:
         report: RelaxReport,
         report_progress: ProgressCallback,
         should_cancel: Callable[[], bool],
+        options: RelaxOptions | None = None,
     ) -> tuple[NDArray[np.float64], float]:
         """The energy's rounds (and restarts) over the region ``free``, with contact when
         ``transforms`` are given, ending as soon as nothing is inverted when the quality
         optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates
-        and the smallest corner det J."""
-        opt = self.options
+        and the smallest corner det J. ``options`` replaces the relaxation's own for this
+        run (the slow pass's schedule)."""
+        opt = options or self.options
         whole = sub = self.energy(free, should_cancel)
         raise_if_cancelled(should_cancel, "relaxation cancelled")
         x_start = x.copy()  # the pose: where a restart puts stuck nodes back

@@ -476,8 +476,10 @@ def test_corners_that_cannot_be_freed_end_with_the_round_that_left_the_fewest():
     inverted corners in the first attempt, 438 at the end of the last). The relaxation hands on
     the round that left the fewest, and its coordinates."""
     coords, blocks, free, tangled = _block_with_a_node_held_outside((0.0, 30.0, 0.0))
-    rx = relaxation(coords, blocks, free, stall_rounds=100)  # every round of every attempt
+    # every round of every attempt, and no slow pass after them (its own test below)
+    rx = relaxation(coords, blocks, free, stall_rounds=100, slow_eps_decrease=0.0)
     relaxed, report = rx.relax(tangled)
+    assert report.slow_pass is None
     history = report.history
     assert report.rounds == 60 and report.restarts == 2
     # the kept round is the best (fewest inverted, then the largest smallest det) whichever
@@ -489,6 +491,48 @@ def test_corners_that_cannot_be_freed_end_with_the_round_that_left_the_fewest():
     sub = rx.energy(rx.free)
     _, _, det = sub.energy(relaxed[sub.nodes], 1e-3)
     assert int(np.sum(det <= 0)) == report.inverted_corners_after
+
+
+def test_a_slow_pass_around_what_stays_inverted_is_kept_only_when_it_leaves_fewer():
+    """When the rounds and restarts leave corners inverted, the nodes around them start again
+    from the pose with eps falling more slowly; the result with fewer inverted corners is
+    handed on (the leg built at 20 deg, posed to 120 deg: 5 corners left by the fast schedule,
+    none by the slow pass), and when the slow pass does no better, the first pass's result to
+    the bit."""
+    coords, blocks, free, tangled = _block_with_a_node_held_outside((0.0, 30.0, 0.0))
+    fast = relaxation(coords, blocks, free, stall_rounds=100, slow_eps_decrease=0.0)
+    x_fast, first = fast.relax(tangled)
+    rx = relaxation(coords, blocks, free, stall_rounds=100)
+    x_slow, report = rx.relax(tangled)
+    slow = report.slow_pass
+    assert slow is not None and slow["inverted_corners_before"] == first.inverted_corners_after
+    assert slow["rounds"] > 0 and 0 < slow["nodes"] <= len(free)
+    assert report.rounds == first.rounds  # the first pass's rounds, the slow pass's apart
+    sub = rx.energy(rx.free)
+    _, _, det = sub.energy(x_slow[sub.nodes], 1e-3)
+    assert int(np.sum(det <= 0)) == report.inverted_corners_after
+    # the slow schedule frees one more corner here (3 -> 2 inverted), so its result is kept
+    assert slow["kept"]
+    assert (
+        report.inverted_corners_after
+        == slow["inverted_corners_after"]
+        < first.inverted_corners_after
+    )
+    # a pass that does worse is not kept: with eps falling slower still (the paper's floor of
+    # 0.1) it ends with 6 corners inverted, and the first pass's result is handed on to the bit
+    worse = relaxation(coords, blocks, free, stall_rounds=100, slow_eps_decrease=0.1)
+    x_worse, report_worse = worse.relax(tangled)
+    assert not report_worse.slow_pass["kept"]
+    assert report_worse.slow_pass["inverted_corners_after"] > first.inverted_corners_after
+    assert report_worse.inverted_corners_after == first.inverted_corners_after
+    np.testing.assert_array_equal(x_worse, x_fast)
+
+
+def test_relax_options_reject_a_slow_pass_out_of_range():
+    with pytest.raises(ValueError, match="slow_eps_decrease"):
+        RelaxOptions(slow_eps_decrease=1.0)
+    with pytest.raises(ValueError, match="slow_rings"):
+        RelaxOptions(slow_rings=0)
 
 
 def test_an_attempt_that_stops_freeing_corners_goes_on_to_the_restart():

@@ -180,7 +180,16 @@ def cells(repositioners):
 #: 13.46, until gate rounds followed the settling, 5 December; the 10-node tet demo at 0 deg:
 #: its mid-side nodes pushed along their edges failed the gate until they left the bones at
 #: right angles to their edges and the edges got contact planes, 6 December)
-DEFAULT_CELLS = {("hex", 90.0), ("hex-m", 90.0), ("hex", 0.0), ("mixed", 90.0), ("tet10", 0.0)}
+DEFAULT_CELLS = {
+    ("hex", 90.0),
+    ("hex-m", 90.0),
+    ("hex", 0.0),
+    ("mixed", 90.0),
+    ("tet10", 0.0),
+    # the fast eps schedule left 5 movable knee-flesh elements inverted here until the slow
+    # pass around them (RelaxOptions.slow_eps_decrease, 6 December, fourth session)
+    ("hex-flexed20", 120.0),
+}
 #: Cells measured to miss a target, with what was measured (kept visible as expected failures
 #: until the engine reaches them; docs/repositioning.md, known limits).
 KNOWN_MISSES = {
@@ -197,9 +206,6 @@ KNOWN_MISSES = {
     "out of the bones leaves a corner tet's collapse at 0.061 against the initial 0.108 (aspect "
     "27.1 against 13.5, smallest dihedral angle 3.4 against 6.9 deg; coarse 10-node tet demo, "
     "6 December, volume aim 1/1.15 to 1.15)",
-    ("hex-flexed20", 120.0, "export"): "5 movable knee-flesh elements inverted on the leg built "
-    "at 20 deg and posed to 120 deg since the bone distance is exact near the surface (1 before, "
-    "with a node the old measure let into the tibia; 6 December, pinned kernels)",
 }
 
 
