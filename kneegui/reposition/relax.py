@@ -877,13 +877,14 @@ class ElasticRelaxation:
             optimise_next = (
                 stop_when_untangled and self.blocks is not None and self.aims is not None
             )
-            x, d_min = self._minimise_energy(
+            x, d_min, whole, det = self._minimise_energy(
                 x, free, contact_transforms, optimise_next, report, progress, cancel
             )
             if d_min <= 0 and self.options.slow_eps_decrease > 0:
                 x, d_min = self._slow_pass(
-                    pose, x, free, contact_transforms, optimise_next, report, progress, cancel
-                )
+                    pose, x, whole, det, contact_transforms, optimise_next, report, progress,
+                    cancel,
+                )  # fmt: skip
         x = self.carry_midside(coords, x)
         return self.midside_out_of_bones(x, transforms if use_contact else None), report, d_min > 0
 
@@ -891,24 +892,25 @@ class ElasticRelaxation:
         self,
         pose: NDArray[np.float64],
         x: NDArray[np.float64],
-        free: NDArray[np.int64],
+        whole: FoldoverEnergy,
+        det: NDArray[np.float64],
         transforms: Mapping[str, RigidTransform] | None,
         optimise_next: bool,
         report: RelaxReport,
         report_progress: ProgressCallback,
         should_cancel: Callable[[], bool],
     ) -> tuple[NDArray[np.float64], float]:
-        """The last pass when the rounds and restarts left corners inverted at ``x``: the free
-        nodes within ``slow_rings`` of them start again from ``pose`` and run the rounds with
+        """The last pass when the rounds and restarts left corners inverted at ``x`` (``det``
+        over the corners of their region's energy ``whole``, as :meth:`_minimise_energy`
+        returns them): the free nodes within ``slow_rings`` of them start again from ``pose``
+        and run the rounds with
         ``eps`` falling more slowly (:class:`RelaxOptions`); the rest of the region keeps
         ``x``. Returns whichever of the two leaves fewer corners of the region inverted (then
         the larger smallest det J), and records the pass in ``report.slow_pass`` (its rounds are
         not counted in ``report.rounds``, which are the first pass's)."""
         opt = self.options
-        whole = self.energy(free, should_cancel)
-        _, _, det = whole.energy(x[whole.nodes], 1e-9)
         stuck = whole.nodes[self._stuck_nodes(whole, det)]
-        region = self._within_rings(stuck, opt.slow_rings, free)
+        region = self._within_rings(stuck, opt.slow_rings, whole.nodes[whole.free])
         start = x.copy()
         start[region] = pose[region]
         second = RelaxReport()
@@ -917,7 +919,7 @@ class ElasticRelaxation:
             report_progress(fraction, f"{message} (slow pass around what stayed inverted)")
 
         slow = replace(opt, eps_decrease=opt.slow_eps_decrease)
-        x_slow, _ = self._minimise_energy(
+        x_slow, _, _, _ = self._minimise_energy(
             start, region, transforms, optimise_next, second, progress, should_cancel, slow
         )
         _, _, det_slow = whole.energy(x_slow[whole.nodes], 1e-9)
@@ -951,12 +953,13 @@ class ElasticRelaxation:
         report_progress: ProgressCallback,
         should_cancel: Callable[[], bool],
         options: RelaxOptions | None = None,
-    ) -> tuple[NDArray[np.float64], float]:
+    ) -> tuple[NDArray[np.float64], float, FoldoverEnergy, NDArray[np.float64]]:
         """The energy's rounds (and restarts) over the region ``free``, with contact when
         ``transforms`` are given, ending as soon as nothing is inverted when the quality
-        optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates
-        and the smallest corner det J. ``options`` replaces the relaxation's own for this
-        run (the slow pass's schedule)."""
+        optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates,
+        the smallest corner det J, the region's energy and its corners' det J at the end (what
+        the slow pass starts from). ``options`` replaces the relaxation's own for this run (the
+        slow pass's schedule)."""
         opt = options or self.options
         whole = sub = self.energy(free, should_cancel)
         raise_if_cancelled(should_cancel, "relaxation cancelled")
@@ -1150,7 +1153,7 @@ class ElasticRelaxation:
             report.contact_released, report.sliding_released = released_then
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
-        return x, d_min
+        return x, d_min, whole, det
 
     def _reach(self, seed: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
         """Mask of the nodes within ``rings`` mesh edges of the ``seed`` nodes."""
