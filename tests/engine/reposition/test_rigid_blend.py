@@ -148,3 +148,48 @@ def test_harmonic_weights_are_the_same_given_the_surface_distances():
     # the weight of the first group falls from its face to the opposite one
     column = measured[np.searchsorted(free, index[1:-1, 5, 5]), 0]
     assert np.all(np.diff(column) < 0)
+
+
+def _grid_problem(n: int = 14):
+    ticks = np.arange(n, dtype=float)
+    coords = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3)
+    index = np.arange(n**3).reshape(n, n, n)
+    edges = np.concatenate(
+        [
+            np.column_stack([index[:-1].ravel(), index[1:].ravel()]),
+            np.column_stack([index[:, :-1].ravel(), index[:, 1:].ravel()]),
+            np.column_stack([index[:, :, :-1].ravel(), index[:, :, 1:].ravel()]),
+        ]
+    )
+    anchors = [index[0].ravel(), index[-1].ravel(), np.setdiff1d(index[1:-1, 0, 0], [])]
+    free = np.setdiff1d(np.arange(n**3), np.concatenate(anchors))
+    return coords, edges, anchors, free, index
+
+
+@pytest.mark.parametrize("orphans", [False, True])
+def test_iterative_weights_derive_one_column_only_where_they_sum_to_one(monkeypatch, orphans):
+    """Beyond the direct solve's size the CG iterates one column fewer when the columns must
+    sum to one, and every column where a free node has an edge to a node that is neither
+    free nor anchored (its row no longer sums to one): the weights agree with the direct
+    solve's either way."""
+    from kneegui.reposition import rigid_blend
+
+    coords, edges, anchors, free, index = _grid_problem()
+    if orphans:  # a few nodes in the middle belong to no group and are not solved for
+        free = np.setdiff1d(free, index[6:8, 6:8, 6:8].ravel())
+    n_nodes = len(coords)
+    direct = rigid_blend.harmonic_weights(n_nodes, edges, free, anchors, coords)
+    columns = []
+    original = rigid_blend.block_cg
+
+    def spy(matrix, rhs, *args, **kwargs):
+        columns.append(rhs.shape[1])
+        return original(matrix, rhs, *args, **kwargs)
+
+    monkeypatch.setattr(rigid_blend, "DIRECT_SOLVE_MAX", 0)
+    monkeypatch.setattr(rigid_blend, "block_cg", spy)
+    iterative = rigid_blend.harmonic_weights(n_nodes, edges, free, anchors, coords)
+    assert columns == ([3] if orphans else [2])
+    np.testing.assert_allclose(iterative, direct, atol=1e-6)
+    np.testing.assert_allclose(iterative.sum(axis=1), 1.0, rtol=1e-12)
+    assert np.all(iterative >= 0.0)
