@@ -203,52 +203,10 @@ def harmonic_weights(
     if len(free) <= DIRECT_SOLVE_MAX:
         w = spla.splu(lap.tocsc()).solve(rhs)
     else:
-        w = _solve_partition_of_unity(lap, rhs, prior, 1.0 / diag, cancel)
+        w = block_cg(lap, rhs, prior, 1.0 / diag, rtol=1e-8, max_iterations=5000, cancel=cancel)
     w = np.clip(w, 0.0, None)
     total = w.sum(axis=1, keepdims=True)
     return np.where(total > _SMALL, w / np.maximum(total, _SMALL), prior)
-
-
-#: Largest row defect ``|L 1 - sum of rhs|``, relative to the row's diagonal, at which the
-#: weights' columns are known to sum to one (:func:`_solve_partition_of_unity`).
-PARTITION_DEFECT_TOLERANCE = 1e-12
-
-
-def _solve_partition_of_unity(
-    lap: sp.csr_matrix,
-    rhs: NDArray[np.float64],
-    prior: NDArray[np.float64],
-    inv_diag: NDArray[np.float64],
-    cancel: Callable[[], bool] | None,
-) -> NDArray[np.float64]:
-    """The harmonic weights ``lap @ w = rhs`` by :func:`block_cg`, one column fewer.
-
-    When every row of ``rhs`` sums to that row of ``lap @ 1`` (each free node's edges all
-    lead to free or anchored nodes, and the prior sums to one), the columns of the solution
-    sum to exactly one: the last column with a right-hand side is then one minus the others,
-    to the others' tolerance, and is not iterated (a fifth less time on a whole-body model,
-    where the CG streams the matrix and every column each iteration; which column is derived
-    matters little, and is chosen by its index so that no rounding can change the choice).
-    Otherwise every column is solved.
-    """
-    solved = np.flatnonzero(np.linalg.norm(rhs, axis=0) > 0.0)
-    defect = np.abs(lap @ np.ones(lap.shape[0]) - rhs.sum(axis=1))
-    if len(solved) < 2 or np.any(defect > PARTITION_DEFECT_TOLERANCE / inv_diag):
-        return block_cg(lap, rhs, prior, inv_diag, rtol=1e-8, max_iterations=5000, cancel=cancel)
-    derived = int(solved[-1])
-    others = np.array([c for c in range(rhs.shape[1]) if c != derived])
-    w = np.zeros_like(rhs)
-    w[:, others] = block_cg(
-        lap,
-        rhs[:, others],
-        prior[:, others],
-        inv_diag,
-        rtol=1e-8,
-        max_iterations=5000,
-        cancel=cancel,
-    )
-    w[:, derived] = 1.0 - w[:, others].sum(axis=1)
-    return w
 
 
 def block_cg(
