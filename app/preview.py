@@ -7,6 +7,12 @@ last move, or at once on release) :class:`ExportPreview` runs the export path,
 angle in a worker thread; its result (an :class:`ExportedPose`) becomes the view and is what
 File > Export writes, without solving again.
 
+The export of an angle depends on the poser and the angle alone (the engine's rule: the same
+bits whatever was posed before), so each result is kept for the poser it came from: back at an
+angle already exported, the view shows its export at once instead of solving again (at most
+:data:`KEPT_EXPORTS` of them and :data:`KEPT_EXPORT_NODES` node positions in all, the most
+recently shown kept).
+
 Every pose request bumps the workspace's *pose generation*; a job carries the generation it
 was started for, stops (raises :class:`kneegui.errors.Cancelled` at the engine's next check) as
 soon as the generation moves on, and a result whose generation is no longer current is dropped,
@@ -19,8 +25,9 @@ largest element volume change of the solids.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -42,6 +49,10 @@ if TYPE_CHECKING:
 REST_DELAY_MS = 300
 #: Spacing of the live mapping's quality-against-flexion samples (degrees).
 CURVE_STEP_DEG = 5.0
+#: Most exports kept for a return to their angle.
+KEPT_EXPORTS = 16
+#: Most node positions kept in all (24 bytes each): 8 exports of a 1M-node model.
+KEPT_EXPORT_NODES = 8_000_000
 LIVE = "live mapping"
 EXPORTED = "as exported"
 
@@ -208,6 +219,8 @@ class ExportPreview(QObject):
         self.live_curve: QualityCurve | None = None
         #: exported angle -> its figures (every export shown since the poser was built)
         self.exported_points: dict[float, PoseFigures] = {}
+        #: exported angle -> its export, the most recently shown last (for the current poser)
+        self.kept: OrderedDict[float, ExportedPose] = OrderedDict()
         #: the angle the running export is for (None when none runs)
         self.running_for: float | None = None
         self.fraction = 0.0
@@ -254,6 +267,7 @@ class ExportPreview(QObject):
         self.tasks.cancel()
         self.live_curve = None
         self.exported_points.clear()
+        self.kept.clear()
         self.running_for = None
         self.error = ""
         self.curve_changed.emit()
@@ -271,6 +285,8 @@ class ExportPreview(QObject):
         if ws.poser is None or ws.model is None:
             return False
         if ws.exported is not None and ws.exported.generation == ws.pose_generation:
+            return False
+        if self.show_kept():
             return False
         if self.tasks.busy:
             self._pending = True
@@ -298,6 +314,7 @@ class ExportPreview(QObject):
             )
             if poser is ws.poser:
                 self.exported_points[degrees] = exported.figures
+                self._keep(exported)
                 self.curve_changed.emit()
             ws.show_exported(exported)  # dropped there when stale
             self.changed.emit()
@@ -316,6 +333,32 @@ class ExportPreview(QObject):
         self.tasks.start(f"Export at {degrees:g}°", work, done, failed)
         self.changed.emit()
         return True
+
+    def show_kept(self) -> bool:
+        """Show the kept export of the current angle, if there is one (no solve); whether it
+        was shown."""
+        ws = self._ws
+        kept = self.kept.get(ws.target_flexion)
+        if kept is None or ws.poser is None:
+            return False
+        self.kept.move_to_end(kept.flexion)
+        self._explicit = False
+        shown = ws.show_exported(replace(kept, generation=ws.pose_generation))
+        if shown:
+            ws.status.emit(f"{kept.message} (kept from its export at {kept.flexion:g}°)")
+        self.changed.emit()
+        return shown
+
+    def _keep(self, exported: ExportedPose) -> None:
+        """Keep ``exported`` for a return to its angle, within :data:`KEPT_EXPORTS` and
+        :data:`KEPT_EXPORT_NODES`, dropping the least recently shown."""
+        self.kept[exported.flexion] = exported
+        self.kept.move_to_end(exported.flexion)
+        nodes = len(exported.coords)
+        while len(self.kept) > 1 and (
+            len(self.kept) > KEPT_EXPORTS or len(self.kept) * nodes > KEPT_EXPORT_NODES
+        ):
+            self.kept.popitem(last=False)
 
     def start_curve(self) -> bool:
         """Sample the live mapping's figures over the validated range (worker thread; after the

@@ -179,6 +179,62 @@ def test_dragging_again_cancels_the_export_and_a_stale_result_is_never_shown(
     assert 20.0 in ws.preview.exported_points and 90.0 not in ws.preview.exported_points
 
 
+def test_back_at_an_exported_angle_the_view_shows_its_export_without_solving_again(
+    demo_window, qtbot, counted_exports
+):
+    ws, indicator = demo_window.ws, demo_window.indicator
+    demo_window.set_rest_export(True)
+    slider = demo_window.flexion_panel.slider
+    slider.setValue(200)
+    wait_idle(qtbot, ws)
+    counted_exports.clear()
+    ws.preview.kept.clear()
+    slider.setValue(100)
+    wait_idle(qtbot, ws)
+    first = np.array(ws.exported.coords)
+    first_report = ws.exported.posed.report
+    slider.setValue(200)
+    wait_idle(qtbot, ws)
+    assert counted_exports == [(10.0, "done"), (20.0, "done")]
+    assert list(ws.preview.kept) == [10.0, 20.0]
+    shown = []
+    ws.coords_changed.connect(lambda: shown.append((ws.flexion, ws.view_kind)))
+    slider.setValue(100)
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert counted_exports == [(10.0, "done"), (20.0, "done")]  # no third solve
+    assert shown[-1] == (10.0, "as exported")
+    np.testing.assert_array_equal(ws.coords, first)
+    assert ws.exported.posed.report is first_report
+    assert indicator.text().startswith("AS EXPORTED · 10.0°")
+    assert list(ws.preview.kept) == [20.0, 10.0]  # the most recently shown last
+    ws.preview.reset()  # a new poser: nothing kept
+    assert not ws.preview.kept
+
+
+def test_kept_exports_stay_within_their_count_and_node_budget(monkeypatch):
+    from app import preview
+
+    class Exported:
+        def __init__(self, flexion: float, nodes: int):
+            self.flexion, self.coords = flexion, np.zeros((nodes, 3))
+
+    keeper = preview.ExportPreview.__new__(preview.ExportPreview)
+    keeper.kept = preview.OrderedDict()
+    monkeypatch.setattr(preview, "KEPT_EXPORTS", 3)
+    monkeypatch.setattr(preview, "KEPT_EXPORT_NODES", 1000)
+    for angle in (0.0, 30.0, 60.0, 90.0):
+        keeper._keep(Exported(angle, 100))
+    assert list(keeper.kept) == [30.0, 60.0, 90.0]  # the count: the oldest dropped
+    keeper._keep(Exported(30.0, 100))
+    assert list(keeper.kept) == [60.0, 90.0, 30.0]  # kept again: now the most recent
+    for angle in (0.0, 120.0):
+        keeper._keep(Exported(angle, 400))  # 3 x 400 nodes would pass the budget
+    assert list(keeper.kept) == [0.0, 120.0]
+    keeper._keep(Exported(45.0, 5000))  # larger than the budget alone: kept, alone
+    assert list(keeper.kept) == [45.0]
+
+
 def test_file_open_with_progress_recent_decks_and_title(window, qtbot, leg_files, tmp_path):
     deck, setup = leg_files
     ws = window.ws
