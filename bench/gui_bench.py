@@ -262,7 +262,12 @@ def run(
         window.viewport.flush()
         breakdown[f"{metric}_heatmap"] = _breakdown(app, window)
         results[f"{metric}_heatmap"] = repeated()
-    rest_s = _rest_export_seconds(app, window, REST_ANGLE_DEG) if rest_export else None
+    rest_s = kept_s = None
+    if rest_export:
+        rest_s = _rest_export_seconds(app, window, REST_ANGLE_DEG)
+        # away (the live mapping) and back: the window shows the export it keeps for that angle
+        window.ws.set_flexion(REST_ANGLE_DEG - 30.0, force=True)
+        kept_s = _rest_export_seconds(app, window, REST_ANGLE_DEG)
     model = window.ws.model
     out = {
         "benchmark": "gui slider",
@@ -284,6 +289,7 @@ def run(
         "breakdown_ms": breakdown,
         "rest_export_angle_deg": REST_ANGLE_DEG,
         "rest_export_s": rest_s,
+        "rest_export_kept_s": kept_s,
         "machine": machine_description(),
         # other processes share the 2 cores: the 1-minute load average before / after the run
         "load_average_1min": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
@@ -381,6 +387,12 @@ def write_markdown(result: dict, path: Path) -> None:
             f"Export at rest: from the slider's release at {result['rest_export_angle_deg']:g}° "
             f"to the exported pose shown: {result['rest_export_s']:.1f} s.",
         ]
+        if result.get("rest_export_kept_s") is not None:
+            lines[-1] += (
+                f" Back at {result['rest_export_angle_deg']:g}° after a move away, the export"
+                f" kept for that angle is shown {result['rest_export_kept_s']:.2f} s after the"
+                " release (no solve)."
+            )
     mach = result["machine"]
     lines += [
         "",
