@@ -185,7 +185,11 @@ def improve_region(
         )
         # a region left with corners inverted still gets the stage, around them (their nodes
         # held): its settling is what brings the tissue out of the bones
-        stuck = relaxation.inverted_corners_after > 0 and options.quality.hold_inverted
+        stuck = (
+            optimise_next
+            and relaxation.inverted_corners_after > 0
+            and options.quality.hold_inverted
+        )
         if optimise_next and (untangled or stuck):
             x, relaxation.quality = region.optimise(x, options.quality, span("quality"), cancel)
         relaxation.seconds = time.perf_counter() - t0

@@ -109,3 +109,13 @@ def test_a_region_with_nothing_to_untangle_is_not_optimised_for_being_stuck():
     region = Empty()
     improve_region(np.zeros((2, 3)), region, ImprovementOptions(smooth=None))
     assert region.calls == ["untangle"]
+
+
+def test_without_a_quality_stage_a_region_left_inverted_goes_on_to_the_smoothing():
+    """``quality=None`` skips the stage even when the untangling leaves corners inverted (it
+    raised AttributeError there: the stage's options were read before asking whether it runs)."""
+    region = Region(untangled=False)
+    out, report = improve_region(np.zeros((2, 3)), region, ImprovementOptions(quality=None))
+    assert region.calls == ["untangle(stop=False)", "smooth"]
+    assert report.relaxation.inverted_corners_after == 2 and report.relaxation.quality is None
+    np.testing.assert_array_equal(out, 5.0)
