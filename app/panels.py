@@ -600,6 +600,7 @@ class LigamentPanel(QWidget):
 INDICATOR_STYLES = {
     "live mapping": ("#e0a030", "#1a1a1a"),
     "as exported": ("#3a9a50", "#ffffff"),
+    "relaxing": ("#3a6ea5", "#ffffff"),
 }
 
 
@@ -665,7 +666,11 @@ class ViewIndicator(QLabel):
         figures = ws.view_figures()
         text = f"{kind.upper()} · {ws.flexion:.1f}° · {figures.text()}"
         preview = ws.preview
-        if kind == "live mapping":
+        if kind == "relaxing":
+            from app.preview import STAGE_NAMES
+
+            text += f" · {STAGE_NAMES.get(ws.stage, ws.stage)}, not yet exported"
+        if kind != "as exported":
             if preview.running_for is not None:
                 text += f" · exporting: {preview.message} {100 * preview.fraction:.0f} %"
             elif preview.error:

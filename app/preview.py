@@ -5,7 +5,10 @@ While the flexion slider is dragged the view follows the repositioner's cheap ma
 last move, or at once on release) :class:`ExportPreview` runs the export path,
 :func:`kneegui.reposition.pipeline.pose_model` with relaxation and smoothing, on the resting
 angle in a worker thread; its result (an :class:`ExportedPose`) becomes the view and is what
-File > Export writes, without solving again.
+File > Export writes, without solving again. While it runs, the pose each of its stages ends
+on is shown as it comes (:data:`RELAXING`: the untangled pose, 0.4 of the export's time on the
+paper-scale demo at 90°, then the quality-optimised one), marked as such: it is not what the
+export writes, and File > Export refuses it.
 
 The export of an angle depends on the poser and the angle alone (the engine's rule: the same
 bits whatever was posed before), so each result is kept for the poser it came from: back at an
@@ -55,6 +58,11 @@ KEPT_EXPORTS = 16
 KEPT_EXPORT_NODES = 8_000_000
 LIVE = "live mapping"
 EXPORTED = "as exported"
+#: What the view is while it shows a stage of the running export
+RELAXING = "relaxing"
+#: How the indicator names the pose each stage of the mesh improvement ends on
+#: (:data:`kneegui.meshopt.chain.StageCallback`)
+STAGE_NAMES = {"untangle": "untangled", "quality": "quality-optimised"}
 
 
 @dataclass(frozen=True)
@@ -205,10 +213,13 @@ class ExportPreview(QObject):
     -------
     changed : the state shown by the indicator changed (running, progress, failed, shown)
     curve_changed : the live curve or the exported points changed
+    stage_ready(int, float, str, object) : from the worker thread, queued to the GUI thread:
+        the generation, angle, stage and (N, 3) pose of a stage of the running export
     """
 
     changed = Signal()
     curve_changed = Signal()
+    stage_ready = Signal(int, float, str, object)
 
     def __init__(self, workspace: Workspace):
         super().__init__(workspace)
@@ -236,6 +247,7 @@ class ExportPreview(QObject):
         self._timer.timeout.connect(lambda: self.start())
         self.tasks.progress.connect(self._on_progress)
         self.tasks.finished.connect(self._on_finished)
+        self.stage_ready.connect(self._on_stage)
 
     @property
     def busy(self) -> bool:
@@ -301,7 +313,11 @@ class ExportPreview(QObject):
             def stale() -> bool:
                 return cancelled() or ws.pose_generation != generation
 
-            return smoothing.smooth_current(poser, degrees, progress, stale)
+            def stage_done(stage: str, coords: NDArray[np.float64]) -> None:
+                if not stale():
+                    self.stage_ready.emit(generation, degrees, stage, coords)
+
+            return smoothing.smooth_current(poser, degrees, progress, stale, stage_done)
 
         def done(outcome: smoothing.SmoothingOutcome) -> None:
             self.running_for = None
@@ -388,6 +404,11 @@ class ExportPreview(QObject):
                 self.curve_changed.emit()
 
         return self.tasks.start("Live quality curve", work, done, lambda exc: ws.error.emit(exc))
+
+    def _on_stage(self, generation: int, degrees: float, stage: str, coords: object) -> None:
+        if self.running_for == degrees:
+            self._ws.show_stage(generation, degrees, stage, coords)
+            self.changed.emit()
 
     def _on_progress(self, fraction: float, message: str) -> None:
         if self.running_for is not None:

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from kneegui.meshopt.chain import StageCallback
 from kneegui.reposition import Repositioner
 from kneegui.reposition.pipeline import PosedModel, pose_model
 
@@ -29,12 +30,16 @@ def smooth_current(
     flexion_deg: float,
     progress: Callable[[float, str], None],
     cancelled: Callable[[], bool],
+    stage_done: StageCallback | None = None,
 ) -> SmoothingOutcome:
     """Pose, relax and smooth the model at ``flexion_deg`` exactly as ``kneegui pose`` does
-    (:func:`kneegui.reposition.pipeline.pose_model`), with a status line built from its report."""
+    (:func:`kneegui.reposition.pipeline.pose_model`), with a status line built from its report;
+    ``stage_done(stage, coords)`` gets the pose each stage of the mesh improvement ends on."""
     from app.heatmaps import jacobian_says_something
 
-    posed = pose_model(repositioner, flexion_deg, progress=progress, cancel=cancelled)
+    posed = pose_model(
+        repositioner, flexion_deg, progress=progress, cancel=cancelled, stage_done=stage_done
+    )
     message = status_line(posed.report, jacobian_says_something(posed.model))
     return SmoothingOutcome(np.array(posed.model.coords), posed.report, message, posed)
 

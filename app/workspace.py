@@ -26,7 +26,7 @@ from PySide6.QtCore import QObject, QTimer, Signal
 from app.autosave import AUTOSAVE_DELAY_MS, autosave_path
 from app.heatmaps import HEATMAP_METRICS, heatmap_metrics
 from app.poser import Poser, make_poser
-from app.preview import ExportedPose, ExportPreview, PoseFigures, pose_figures
+from app.preview import STAGE_NAMES, ExportedPose, ExportPreview, PoseFigures, pose_figures
 from kneegui.errors import GeometryError, KneeguiError, SetupError
 from kneegui.geometry import JointAxes, compute_joint_axes
 from kneegui.io.atomic import atomic_write_text
@@ -122,6 +122,10 @@ class Workspace(QObject):
         self.pose_generation = 0
         #: the export path's result while the view shows it (None: the live mapping)
         self.exported: ExportedPose | None = None
+        #: while the export runs: the stage whose pose the view shows and the generation it
+        #: answers (``show_stage``; None: no stage shown)
+        self.stage: str | None = None
+        self._stage_generation = -1
         self._custom_coords = False  # coordinates given by set_coords, not a pose
         self._figures: tuple[NDArray[np.float64], PoseFigures] | None = None
         #: the setup has edits not saved to a file
@@ -182,6 +186,7 @@ class Workspace(QObject):
         self.setup_dict = dict(setup) if setup is not None else default_setup_dict(model)
         self.coords = np.array(model.coords, dtype=np.float64)
         self.exported = None
+        self.stage = None
         self._custom_coords = False
         self._bump(schedule=False)
         self.preview.reset()
@@ -655,10 +660,13 @@ class Workspace(QObject):
 
     @property
     def view_kind(self) -> str:
-        """``"as exported"`` or ``"live mapping"``: what the view shows."""
-        from app.preview import EXPORTED, LIVE
+        """``"as exported"``, ``"relaxing"`` (a stage of the running export) or ``"live
+        mapping"``: what the view shows."""
+        from app.preview import EXPORTED, LIVE, RELAXING
 
-        return EXPORTED if self.exported is not None else LIVE
+        if self.exported is not None:
+            return EXPORTED
+        return RELAXING if self.stage is not None else LIVE
 
     def _apply_pose(
         self,
@@ -673,9 +681,13 @@ class Workspace(QObject):
             and self.exported.generation >= generation
         ):
             return  # the export of this (or a later) request is already shown
+        if self.stage is not None and generation is not None:
+            if self._stage_generation >= generation:
+                return  # a stage of its export is already shown
         self.flexion = deg
         self.coords = coords
         self.exported = None
+        self.stage = None
         self._custom_coords = False
         self._quality = None
         self._pose_quality = pose_quality
@@ -688,11 +700,31 @@ class Workspace(QObject):
         self.flexion = exported.flexion
         self.coords = np.array(exported.coords, dtype=np.float64)
         self.exported = exported
+        self.stage = None
         self._custom_coords = False
         self._quality = None
         self._pose_quality = None
         self.coords_changed.emit()
         self.status.emit(exported.message)
+        return True
+
+    def show_stage(
+        self, generation: int, flexion: float, stage: str, coords: NDArray[np.float64]
+    ) -> bool:
+        """Show the pose a stage of the running export ended on (``"untangle"``: the
+        untangled pose while the quality stage runs), unless a newer pose was asked for or
+        the export is already shown; whether it was shown. It is not what the export writes:
+        :meth:`export` refuses it."""
+        if generation != self.pose_generation or self.model is None or self.exported is not None:
+            return False
+        self.flexion = flexion
+        self.coords = coords
+        self.stage = stage
+        self._stage_generation = generation
+        self._custom_coords = False
+        self._quality = None
+        self._pose_quality = None
+        self.coords_changed.emit()
         return True
 
     def set_coords(self, coords: NDArray[np.float64]) -> None:
@@ -701,6 +733,7 @@ class Workspace(QObject):
         self._bump(schedule=False)
         self.coords = np.array(coords, dtype=np.float64)
         self.exported = None
+        self.stage = None
         self._custom_coords = True
         self._quality = None
         self._pose_quality = None
@@ -977,6 +1010,13 @@ class Workspace(QObject):
                     f"{'; '.join(exported.posed.gate_reasons)}; force the export to write it"
                 )
             posed = exported.posed.model
+        elif self.stage is not None:
+            # a stage's pose is not a product: the export writes the chain's end, once shown
+            raise KneeguiError(
+                f"the view shows the {STAGE_NAMES.get(self.stage, self.stage)} pose of the "
+                f"export at {self.flexion:g}°, not what the export writes: export once the "
+                "view says 'as exported'"
+            )
         else:
             n_inv = self.quality().n_inverted
             if n_inv and not force:

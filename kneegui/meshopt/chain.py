@@ -35,6 +35,9 @@ from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
 
 ProgressCallback = Callable[[float, str], None]
 CancelCallback = Callable[[], bool]
+#: ``stage_done(stage, coords)``: a stage ended and another follows; ``coords`` (N, 3) is the
+#: whole pose after it (a copy the callee may keep). Stages: ``"untangle"``, ``"quality"``.
+StageCallback = Callable[[str, NDArray[np.float64]], None]
 
 
 def _export_quality() -> QualityOptions:
@@ -145,6 +148,7 @@ def improve_region(
     options: ImprovementOptions,
     progress: ProgressCallback | None = None,
     cancel: CancelCallback | None = None,
+    stage_done: StageCallback | None = None,
 ) -> tuple[NDArray[np.float64], ImprovementReport]:
     """Run the chain (module docstring) on ``region``.
 
@@ -158,6 +162,9 @@ def improve_region(
     progress, cancel : callable, optional
         ``progress(fraction, message)``; ``cancel()`` returns True to stop (the stages raise
         :class:`kneegui.errors.Cancelled`).
+    stage_done : callable, optional
+        :data:`StageCallback`, after each stage another follows (a window shows the untangled
+        pose while the quality stage runs); it cannot change the result.
 
     Returns
     -------
@@ -177,6 +184,11 @@ def improve_region(
         return progress_span(report_progress, lo, hi)
 
     x, relaxation = np.array(coords, dtype=np.float64, copy=True), None
+
+    def done(stage: str, follows: bool) -> None:
+        if stage_done is not None and follows:
+            stage_done(stage, x.copy())
+
     if options.relax is not None:
         t0 = time.perf_counter()
         optimise_next = options.quality is not None
@@ -190,8 +202,11 @@ def improve_region(
             and relaxation.inverted_corners_after > 0
             and options.quality.hold_inverted
         )
-        if optimise_next and (untangled or stuck):
+        optimising = optimise_next and (untangled or stuck)
+        done("untangle", optimising or smoothing)
+        if optimising:
             x, relaxation.quality = region.optimise(x, options.quality, span("quality"), cancel)
+            done("quality", smoothing)
         relaxation.seconds = time.perf_counter() - t0
     relaxed = x
     smoothed = None

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from kneegui.errors import raise_if_cancelled
 from kneegui.geometry.axes import measure_flexion
 from kneegui.io.lsdyna import write_deck
+from kneegui.meshopt.chain import StageCallback
 from kneegui.model import ElementBlock, Model
 from kneegui.quality import (
     compute_quality,
@@ -242,6 +243,7 @@ def pose_model(
     smooth: bool = True,
     progress: ProgressCallback | None = None,
     cancel: Callable[[], bool] | None = None,
+    stage_done: StageCallback | None = None,
 ) -> PosedModel:
     """Pose the model, check its quality, smooth what degraded, and report.
 
@@ -256,6 +258,10 @@ def pose_model(
     progress, cancel : callable, optional
         ``progress(fraction, message)``; ``cancel()`` returns True to stop (raises
         :class:`kneegui.errors.Cancelled`).
+    stage_done : callable, optional
+        ``stage_done(stage, coords)`` with the whole pose after each stage of the mesh
+        improvement that another follows (:meth:`Repositioner.improve`): a window shows the
+        untangled pose while the quality stage runs. It cannot change the result.
 
     Returns
     -------
@@ -286,6 +292,7 @@ def pose_model(
         smooth=smooth,
         progress=improve_progress,
         cancel=cancel,
+        stage_done=stage_done,
     )
     relaxation, smoothing = improved.relaxation, improved.smoothing
 

@@ -29,7 +29,12 @@ from numpy.typing import NDArray
 from kneegui.errors import Cancelled, SetupError, raise_if_cancelled
 from kneegui.geometry.axes import JointAxes, compute_joint_axes, measure_flexion
 from kneegui.kinematics.posing import BonePose, solve_bone_pose
-from kneegui.meshopt.chain import ImprovementOptions, ImprovementReport, improve_region
+from kneegui.meshopt.chain import (
+    ImprovementOptions,
+    ImprovementReport,
+    StageCallback,
+    improve_region,
+)
 from kneegui.meshopt.quality_optimiser import quality_aims
 from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
 from kneegui.model import Model
@@ -847,6 +852,7 @@ class Repositioner:
         smooth: bool = True,
         progress: ProgressCallback | None = None,
         cancel: Callable[[], bool] | None = None,
+        stage_done: StageCallback | None = None,
     ) -> tuple[NDArray[np.float64], ImprovementReport]:
         """Run the mesh-improvement chain (:func:`kneegui.meshopt.chain.improve_region`,
         ``options.improvement``) on the soft tissue of a pose, in the region
@@ -863,6 +869,10 @@ class Repositioner:
             Run the untangling and quality stages, and the smoothing stage (each when
             ``options.improvement`` has it).
         progress, cancel : callable, optional
+        stage_done : callable, optional
+            ``stage_done(stage, coords)`` when a stage of the chain ends and another follows
+            (:data:`kneegui.meshopt.chain.StageCallback`; the 10-node tets' mid-side nodes
+            put back on their edges).
 
         Returns
         -------
@@ -909,7 +919,13 @@ class Repositioner:
                 self._relax_contact.resolve(coords, bone.transforms, cancel)
             check("finding the region to relax")
         region = RelaxedRegion(relaxation, bone.transforms, self._smoothing_stage(bone))
-        coords, report = improve_region(coords, region, options, progress, cancel)
+        forward = stage_done
+        if stage_done is not None and len(self._midside):
+
+            def forward(stage: str, x: NDArray[np.float64]) -> None:
+                stage_done(stage, self._midside.straighten(x))
+
+        coords, report = improve_region(coords, region, options, progress, cancel, forward)
         if len(self._midside):
             coords = self._midside_on_edges(coords, bone)
             report = replace(report, relaxed=self._midside_on_edges(report.relaxed, bone))

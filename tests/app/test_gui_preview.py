@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import app.smoothing
-from kneegui.errors import Cancelled
+from kneegui.errors import Cancelled, KneeguiError
 from kneegui.io.lsdyna import read_deck
 from kneegui.quality import compute_quality, summarize_quality
 
@@ -90,15 +90,36 @@ def test_rest_shows_the_export_as_the_cli_writes_it_and_export_does_not_solve_ag
     demo_window.set_rest_export(True)
     wait_idle(qtbot, ws)
     counted_exports.clear()
-    shown = []
-    ws.coords_changed.connect(lambda: shown.append((ws.flexion, ws.view_kind)))
+    shown, banners, staged = [], [], []
+
+    def on_coords():
+        shown.append((ws.flexion, ws.view_kind))
+        if ws.view_kind == "relaxing":
+            staged.append(ws.coords.copy())
+
+    def on_preview():  # after the indicator's own refresh on the same signal
+        if ws.view_kind == "relaxing" and len(banners) < len(staged):
+            banners.append(indicator.text())
+
+    ws.coords_changed.connect(on_coords)
+    ws.preview.changed.connect(on_preview)
     demo_window.flexion_panel.slider.setValue(900)
     # the banner changes with the view: to the live mapping when its first pose is drawn
     qtbot.waitUntil(lambda: indicator.text().startswith("LIVE MAPPING"), timeout=10000)
     wait_idle(qtbot, ws, timeout=300)
     assert demo_window.last_error is None, demo_window.last_error
-    # the live pose first, then the export of the resting angle
+    # the live pose first, then the poses the export's stages end on (untangled, then
+    # quality-optimised), then the export of the resting angle
     assert shown[0] == (90.0, "live mapping") and shown[-1] == (90.0, "as exported")
+    kinds = [kind for _, kind in shown]
+    first = kinds.index("relaxing")
+    assert kinds[first:-1] == ["relaxing", "relaxing"] and "relaxing" not in kinds[:first]
+    assert len(banners) == 2 and banners[0].startswith("RELAXING · 90.0° · inverted 0 ·")
+    assert "untangled, not yet exported · exporting:" in banners[0], banners[0]
+    assert "quality-optimised, not yet exported" in banners[1], banners[1]
+    # stages of the same export, not copies of its end: the quality stage and the smoothing
+    # still moved nodes after them
+    assert np.abs(staged[0] - ws.exported.coords).max() > 1e-3
     assert counted_exports == [(90.0, "done")]
     np.testing.assert_allclose(ws.coords, cli_coords, rtol=0, atol=1e-6)
     mine = ws.exported.posed.report
@@ -177,6 +198,32 @@ def test_dragging_again_cancels_the_export_and_a_stale_result_is_never_shown(
     assert ws.view_kind == "as exported" and ws.flexion == 20.0
     np.testing.assert_array_equal(ws.coords, ws.exported.coords)
     assert 20.0 in ws.preview.exported_points and 90.0 not in ws.preview.exported_points
+
+
+def test_a_stage_of_the_export_is_shown_marked_and_never_written(demo_window, qtbot, tmp_path):
+    """The pose a stage of the running export ends on is shown for its request alone, marked
+    'relaxing', and File > Export refuses it (even forced): it is not the chain's end."""
+    ws, indicator = demo_window.ws, demo_window.indicator
+    demo_window.set_rest_export(False)  # no export runs on its own: the test hands the stage
+    demo_window.flexion_panel.slider.setValue(600)
+    wait_idle(qtbot, ws)
+    live, generation = ws.coords.copy(), ws.pose_generation
+    assert not ws.show_stage(generation - 1, 60.0, "untangle", live + 1.0)  # a stale request
+    assert ws.view_kind == "live mapping"
+    assert ws.show_stage(generation, 60.0, "untangle", live + 1.0)
+    assert ws.view_kind == "relaxing" and ws.stage == "untangle"
+    np.testing.assert_array_equal(ws.coords, live + 1.0)
+    indicator.refresh()
+    assert indicator.text().startswith("RELAXING · 60.0° · inverted "), indicator.text()
+    assert "untangled, not yet exported" in indicator.text()
+    with pytest.raises(KneeguiError, match="untangled pose of the export at 60°"):
+        ws.export(tmp_path / "refused.k", force=True)
+    assert not (tmp_path / "refused.k").exists()
+    ws._apply_pose(60.0, live, generation=generation)  # a late live pose of that request
+    assert ws.view_kind == "relaxing"
+    demo_window.flexion_panel.slider.setValue(500)  # a new request replaces it
+    wait_idle(qtbot, ws)
+    assert ws.view_kind == "live mapping" and ws.stage is None and ws.flexion == 50.0
 
 
 def test_back_at_an_exported_angle_the_view_shows_its_export_without_solving_again(

@@ -119,3 +119,27 @@ def test_without_a_quality_stage_a_region_left_inverted_goes_on_to_the_smoothing
     assert region.calls == ["untangle(stop=False)", "smooth"]
     assert report.relaxation.inverted_corners_after == 2 and report.relaxation.quality is None
     np.testing.assert_array_equal(out, 5.0)
+
+
+@pytest.mark.parametrize(
+    ("options", "stages"),
+    [
+        (ImprovementOptions(), [("untangle", 1.0), ("quality", 3.0)]),
+        (ImprovementOptions(smooth=None), [("untangle", 1.0)]),  # the last stage: no call
+        (ImprovementOptions(quality=None), [("untangle", 1.0)]),
+        (ImprovementOptions(relax=None), []),
+    ],
+)
+def test_each_stage_that_another_follows_hands_over_its_pose(options, stages):
+    """``stage_done`` sees the whole pose after each stage another stage follows, as a copy:
+    what the callee does with it cannot change the result."""
+    seen = []
+
+    def stage_done(stage, x):
+        seen.append((stage, float(x[0, 0])))
+        x[:] = -100.0  # the callee's copy
+
+    plain, _ = improve_region(np.zeros((2, 3)), Region(), options)
+    out, _ = improve_region(np.zeros((2, 3)), Region(), options, stage_done=stage_done)
+    assert seen == stages
+    np.testing.assert_array_equal(out, plain)
