@@ -43,7 +43,11 @@ StageCallback = Callable[[str, NDArray[np.float64]], None]
 def _export_quality() -> QualityOptions:
     """The quality stage's parameters for a posed region (docs/repositioning.md)."""
     return QualityOptions(
-        rounds=15, iterations_per_round=150, constraint_stiffness=100.0, volume_weight=3.0
+        rounds=15,
+        iterations_per_round=150,
+        constraint_stiffness=100.0,
+        volume_weight=3.0,
+        tolerance=0.05,
     )
 
 
