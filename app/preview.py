@@ -241,6 +241,7 @@ class ExportPreview(QObject):
         self._pending = False
         self._curve_pending = False
         self._explicit = False
+        self._running_generation = -1
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
         self._timer.setInterval(REST_DELAY_MS)
@@ -338,6 +339,7 @@ class ExportPreview(QObject):
         def failed(exc: BaseException) -> None:
             self.running_for = None
             if ws.pose_generation == generation:
+                ws.drop_stage()
                 self.error = f"{type(exc).__name__}: {exc}"
                 ws.status.emit(f"the export at {degrees:g}° failed: {exc}")
                 if explicit_run:
@@ -345,6 +347,7 @@ class ExportPreview(QObject):
             self.changed.emit()
 
         self.running_for = degrees
+        self._running_generation = generation
         self.fraction, self.message = 0.0, "posing"
         self.tasks.start(f"Export at {degrees:g}°", work, done, failed)
         self.changed.emit()
@@ -418,6 +421,8 @@ class ExportPreview(QObject):
     def _on_finished(self, _name: str) -> None:
         if self.running_for is not None:  # cancelled: neither done nor failed ran
             self.running_for = None
+            if self._ws.pose_generation == self._running_generation:
+                self._ws.drop_stage()  # cancelled for itself, not for a newer pose
             self.changed.emit()
         QTimer.singleShot(0, self._after_task)
 

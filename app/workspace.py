@@ -727,6 +727,14 @@ class Workspace(QObject):
         self.coords_changed.emit()
         return True
 
+    def drop_stage(self) -> None:
+        """Back to the live mapping at the angle shown when the view shows a stage of an
+        export that ended without its result (failed or cancelled): a stage is never left as
+        if it were a pose of its own. Asks for no export."""
+        if self.stage is None or self.exported is not None or self.poser is None:
+            return
+        self._apply_pose(self.flexion, self.poser.pose(self.flexion))
+
     def set_coords(self, coords: NDArray[np.float64]) -> None:
         """Replace the current coordinates with arbitrary ones (not a pose, not exported)."""
         self._live.discard()

@@ -226,6 +226,34 @@ def test_a_stage_of_the_export_is_shown_marked_and_never_written(demo_window, qt
     assert ws.view_kind == "live mapping" and ws.stage is None and ws.flexion == 50.0
 
 
+def test_an_export_that_fails_after_a_stage_leaves_the_live_mapping_not_the_stage(
+    demo_window, qtbot, monkeypatch
+):
+    """A stage is shown while its export runs; when that export fails, the view goes back to
+    the live mapping of the angle (and says why), instead of keeping a pose nothing exports."""
+    ws, indicator = demo_window.ws, demo_window.indicator
+    demo_window.set_rest_export(False)
+    demo_window.flexion_panel.slider.setValue(700)
+    wait_idle(qtbot, ws)
+    live = ws.coords.copy()
+
+    def failing(repositioner, flexion_deg, stage_done=None, **kwargs):
+        stage_done("untangle", repositioner.pose(flexion_deg) + 0.5)
+        raise RuntimeError("solver blew up")
+
+    monkeypatch.setattr(app.smoothing, "pose_model", failing)
+    kinds = []
+    ws.coords_changed.connect(lambda: kinds.append(ws.view_kind))
+    demo_window.set_rest_export(True)  # the export of the resting angle runs now
+    wait_idle(qtbot, ws)
+    assert kinds == ["relaxing", "live mapping"]
+    assert ws.view_kind == "live mapping" and ws.stage is None and ws.flexion == 70.0
+    np.testing.assert_array_equal(ws.coords, live)
+    indicator.refresh()
+    assert "the export failed: RuntimeError: solver blew up" in indicator.text()
+    assert demo_window.last_error is None  # not asked for explicitly: no dialog
+
+
 def test_back_at_an_exported_angle_the_view_shows_its_export_without_solving_again(
     demo_window, qtbot, counted_exports
 ):
