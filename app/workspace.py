@@ -684,11 +684,25 @@ class Workspace(QObject):
         if self.stage is not None and generation is not None:
             if self._stage_generation >= generation:
                 return  # a stage of its export is already shown
-        self.flexion = deg
+        self._show(deg, coords, pose_quality=pose_quality)
+
+    def _show(
+        self,
+        flexion: float,
+        coords: NDArray[np.float64],
+        *,
+        exported: ExportedPose | None = None,
+        stage: str | None = None,
+        custom: bool = False,
+        pose_quality=None,
+    ) -> None:
+        """Make ``coords`` the view: what they are (a live pose, an export, a stage of one,
+        custom coordinates), the measures of the previous view forgotten."""
+        self.flexion = flexion
         self.coords = coords
-        self.exported = None
-        self.stage = None
-        self._custom_coords = False
+        self.exported = exported
+        self.stage = stage
+        self._custom_coords = custom
         self._quality = None
         self._pose_quality = pose_quality
         self.coords_changed.emit()
@@ -697,14 +711,7 @@ class Workspace(QObject):
         """Show the export path's result unless a newer pose was asked for meanwhile."""
         if exported.generation != self.pose_generation or self.model is None:
             return False
-        self.flexion = exported.flexion
-        self.coords = np.array(exported.coords, dtype=np.float64)
-        self.exported = exported
-        self.stage = None
-        self._custom_coords = False
-        self._quality = None
-        self._pose_quality = None
-        self.coords_changed.emit()
+        self._show(exported.flexion, np.array(exported.coords, dtype=np.float64), exported=exported)
         self.status.emit(exported.message)
         return True
 
@@ -717,14 +724,8 @@ class Workspace(QObject):
         :meth:`export` refuses it."""
         if generation != self.pose_generation or self.model is None or self.exported is not None:
             return False
-        self.flexion = flexion
-        self.coords = coords
-        self.stage = stage
         self._stage_generation = generation
-        self._custom_coords = False
-        self._quality = None
-        self._pose_quality = None
-        self.coords_changed.emit()
+        self._show(flexion, coords, stage=stage)
         return True
 
     def drop_stage(self) -> None:
@@ -739,13 +740,7 @@ class Workspace(QObject):
         """Replace the current coordinates with arbitrary ones (not a pose, not exported)."""
         self._live.discard()
         self._bump(schedule=False)
-        self.coords = np.array(coords, dtype=np.float64)
-        self.exported = None
-        self.stage = None
-        self._custom_coords = True
-        self._quality = None
-        self._pose_quality = None
-        self.coords_changed.emit()
+        self._show(self.flexion, np.array(coords, dtype=np.float64), custom=True)
 
     def view_figures(self) -> PoseFigures | None:
         """Inverted elements, worst Jacobian and largest volume change of what is shown (the
