@@ -601,6 +601,8 @@ INDICATOR_STYLES = {
     "live mapping": ("#e0a030", "#1a1a1a"),
     "as exported": ("#3a9a50", "#ffffff"),
     "relaxing": ("#3a6ea5", "#ffffff"),
+    # an export that fails the quality gate: shown as it is, never dressed as a success
+    "fails the gate": ("#b03a2e", "#ffffff"),
 }
 
 
@@ -615,6 +617,7 @@ class ViewIndicator(QLabel):
         super().__init__(parent)
         self.ws = ws
         self.kind = ""
+        self._style = ""
         self.setObjectName("view-indicator")
         self.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.setContentsMargins(8, 3, 8, 3)
@@ -644,16 +647,32 @@ class ViewIndicator(QLabel):
         ws = self.ws
         return ws.pose_pending or ws.preview._timer.isActive()
 
+    def failed_gate(self) -> list[str] | None:
+        """The quality gate's reasons when the view shows an export that fails it, else None."""
+        exported = self.ws.exported
+        if self.ws.view_kind != "as exported" or exported is None:
+            return None
+        return None if exported.posed.passes_gate else list(exported.posed.gate_reasons)
+
     def refresh(self) -> None:
         ws = self.ws
         kind = ws.view_kind
-        if kind != self.kind:
-            background, colour = INDICATOR_STYLES[kind]
+        reasons = self.failed_gate()
+        style = "fails the gate" if reasons else kind
+        if style != self._style:
+            background, colour = INDICATOR_STYLES[style]
             self.setStyleSheet(
                 f"QLabel#view-indicator {{ background: {background}; color: {colour}; "
                 "font-weight: bold; }"
             )
-            self.kind = kind
+            self._style = style
+        self.kind = kind
+        self.setToolTip(
+            "The export fails the quality gate (File > Export writes it only when forced):\n"
+            + "\n".join(f"- {r}" for r in reasons)
+            if reasons
+            else ""
+        )
         if ws.model is None:
             self.setText("")
             return
@@ -665,6 +684,12 @@ class ViewIndicator(QLabel):
             return
         figures = ws.view_figures()
         text = f"{kind.upper()} · {ws.flexion:.1f}° · {figures.text()}"
+        if reasons:
+            text = (
+                f"{kind.upper()} · FAILS THE GATE · {ws.flexion:.1f}° · {figures.text()} · "
+                f"why: hover here ({len(reasons)} reason{'s' if len(reasons) > 1 else ''}); "
+                "Export writes it only when forced"
+            )
         preview = ws.preview
         if kind == "relaxing":
             from app.preview import STAGE_NAMES

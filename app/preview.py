@@ -85,6 +85,10 @@ class PoseFigures:
         Whether the model has elements whose corner Jacobian is more than its sign (hexes,
         wedges, pyramids, quad shells); on tets and triangles alone it is 1 by definition and
         the figures leave it out.
+    split : tuple of int, optional
+        ``inverted`` split by the pre-flight check (``inverted.locked / movable / other``):
+        locked between segments, with a node the repositioner may move, tied to one segment;
+        known for an export's report, ``None`` for a live pose.
     """
 
     inverted: int
@@ -92,6 +96,7 @@ class PoseFigures:
     max_volume_change_pct: float
     worst_tet_collapse: float = float("nan")
     jacobian_says_something: bool = True
+    split: tuple[int, int, int] | None = None
 
     @classmethod
     def from_report(cls, report: Mapping[str, Any], model: Model) -> PoseFigures:
@@ -102,19 +107,31 @@ class PoseFigures:
         worst = final["jacobian"]["worst"]
         change = report["volume_change"]["max_element_pct"]
         collapse = (final.get("tet_collapse") or {}).get("worst")
+        inverted = report.get("inverted") or {}
+        split = None
+        if all(key in inverted for key in ("locked", "movable", "other")):
+            split = (int(inverted["locked"]), int(inverted["movable"]), int(inverted["other"]))
         return cls(
             int(final["inverted"]),
             float("nan") if worst is None else float(worst),
             float("nan") if change is None else float(change),
             float("nan") if collapse is None else float(collapse),
             jacobian_says_something(model),
+            split,
         )
 
     def text(self) -> str:
         """``inverted 3 · worst Jacobian 0.213 · largest volume change +12.1 %``, with the worst
         tet collapse before the Jacobian on a model with tets (and without the Jacobian when
-        it says nothing there)."""
+        it says nothing there). An export's inverted elements are split as its report splits
+        them: ``inverted 16 (8 locked, 8 movable)``."""
         parts = [f"inverted {self.inverted}"]
+        if self.split is not None and self.inverted:
+            locked, movable, other = self.split
+            named = [f"{locked} locked", f"{movable} movable"]
+            if other:
+                named.append(f"{other} tied to one bone")
+            parts[0] += f" ({', '.join(named)})"
         if np.isfinite(self.worst_tet_collapse):
             parts.append(f"worst tet collapse {self.worst_tet_collapse:.3f}")
         if self.jacobian_says_something or not np.isfinite(self.worst_tet_collapse):

@@ -88,3 +88,40 @@ def test_the_sliding_demo_has_nothing_locked(demo_window, qtbot):
     pairs = int(text.split("Coincident node pairs (sliding interfaces): ")[1].split()[0])
     assert pairs == len(panel.preflight.coincident_pairs) > 100
     assert len(demo_window.locked_overlay.shown_cells) == 0
+
+
+def test_an_export_that_fails_the_gate_says_so_in_the_banner(welded_window, qtbot, tmp_path):
+    """The welded joint at 60 deg: the export leaves locked and movable elements inverted.
+    The banner says the export fails the gate, splits the inverted elements as the report does,
+    names the reasons in its tooltip, and File > Export refuses it unless forced."""
+    from app.panels import INDICATOR_STYLES
+    from app.workspace import ExportBlocked
+
+    win = welded_window
+    ws, indicator = win.ws, win.indicator
+    win.set_rest_export(True)
+    win.flexion_panel.slider.setValue(600)
+    qtbot.waitUntil(lambda: ws.view_kind == "as exported" and ws.flexion == 60.0, timeout=120000)
+    wait_idle(qtbot, ws)
+    report = ws.exported.posed.report
+    inverted = report["inverted"]
+    assert not report["gate"]["passed"] and inverted["locked"] > 0 and inverted["movable"] > 0
+    text = indicator.text()
+    expected = (
+        f"AS EXPORTED · FAILS THE GATE · 60.0° · inverted {inverted['total']} "
+        f"({inverted['locked']} locked, {inverted['movable']} movable)"
+    )
+    assert text.startswith(expected), text
+    assert INDICATOR_STYLES["fails the gate"][0] in indicator.styleSheet()
+    for reason in report["gate"]["reasons"]:
+        assert reason in indicator.toolTip()
+    with pytest.raises(ExportBlocked, match="fails the quality gate"):
+        ws.export(tmp_path / "posed.k")
+    assert not (tmp_path / "posed.k").exists()
+    # a live pose again: the banner is the live mapping's, without the gate's reasons
+    win.set_rest_export(False)
+    win.flexion_panel.slider.setValue(300)
+    wait_idle(qtbot, ws)
+    qtbot.waitUntil(lambda: indicator.text().startswith("LIVE MAPPING · 30.0°"), timeout=10000)
+    assert INDICATOR_STYLES["live mapping"][0] in indicator.styleSheet()
+    assert indicator.toolTip() == ""
