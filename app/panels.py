@@ -500,14 +500,23 @@ class QualityPanel(QWidget):
                 worst.append(f"worst tet collapse {np.nanmin(q.concatenated('tet_collapse')):.3f}")
             if "jacobian" in offered:
                 worst.append(f"worst Jacobian {q.worst_jacobian():.3f}")
+            inverted = f"inverted {q.n_inverted}"
+            figures = ws.view_figures() if ws.exported is not None else None
+            if figures is not None and figures.split is not None and q.n_inverted:
+                inverted = figures.text().split(" · ")[0]  # split as the export's report
             self.stats.setText(
-                f"{q.n_elements} measured · inverted {q.n_inverted} · {' · '.join(worst)}\n"
+                f"{q.n_elements} measured · {inverted} · {' · '.join(worst)}\n"
                 f"{label}: min {finite.min():.3g}, mean {finite.mean():.3g}, "
                 f"max {finite.max():.3g}"
             )
+        # an exported pose's locked elements (no repositioner can save them) are marked
+        locked: set[int] = set()
+        if ws.exported is not None:
+            locked = set(ws.exported.posed.report.get("inverted", {}).get("locked_ids", ()))
         self.worst.clear()
         for cell, eid, part, value in ws.worst_elements(ws.metric, 25):
-            item = QListWidgetItem(f"{eid:>8}  {value:9.3f}  {part}")
+            mark = "  locked" if eid in locked else ""
+            item = QListWidgetItem(f"{eid:>8}  {value:9.3f}  {part}{mark}")
             item.setData(Qt.ItemDataRole.UserRole, cell)
             self.worst.addItem(item)
 
@@ -766,29 +775,59 @@ class QualityCurvePanel(QWidget):
             out[name] = (*live, angles, exported)
         return out
 
+    def exported_marks(self, name: str) -> list[tuple[float, float, bool, bool]]:
+        """The exported angles' points of figure ``name`` as drawn: (angle, y, fails the gate,
+        off the scale). A ratio below the plot's -1 (an inverted element's Jacobian can reach
+        -20) is drawn at -1 with a downward triangle, not left off the plot."""
+        points = self.ws.preview.exported_points
+        marks = []
+        for angle in sorted(points):
+            figures = points[angle]
+            value = float(getattr(figures, name))
+            off = name in self.RATIO_SERIES and value < RATIO_FLOOR
+            marks.append(
+                (float(angle), RATIO_FLOOR if off else value, figures.passes_gate is False, off)
+            )
+        return marks
+
     def redraw(self) -> None:
         self.figure.clear()
         data = self.series()
         plotted = self.plotted()
         self.axes = list(self.figure.subplots(len(plotted), 1, sharex=True))
         for ax, (name, label, colour) in zip(self.axes, plotted, strict=True):
-            live_x, live_y, exp_x, exp_y = data[name]
+            live_x, live_y, _, _ = data[name]
             if len(live_x):
                 ax.plot(live_x, live_y, color=colour, lw=1.2, label=LIVE_LABEL)
-            if len(exp_x):
-                ax.plot(exp_x, exp_y, "o", color="k", ms=4, label=EXPORTED_LABEL)
+            for failed in (False, True):
+                for off in (False, True):
+                    group = [m for m in self.exported_marks(name) if m[2:] == (failed, off)]
+                    if not group:
+                        continue
+                    ax.plot(
+                        [m[0] for m in group],
+                        [m[1] for m in group],
+                        "v" if off else ("X" if failed else "o"),
+                        color=FAILED_COLOUR if failed else "k",
+                        ms=6 if failed or off else 4,
+                        label=OFF_SCALE_LABEL
+                        if off
+                        else (FAILED_LABEL if failed else EXPORTED_LABEL),
+                    )
             ax.set_ylabel(label, fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
             if name in self.RATIO_SERIES:
                 # an inverted element's ratio can reach -20; the usable range is 0..1
                 ax.axhline(0.0, color="#888888", lw=0.6)
-                ax.set_ylim(-1.05, 1.05)
+                ax.set_ylim(RATIO_FLOOR - 0.05, 1.05)
         self.axes[-1].set_xlabel("flexion (°)", fontsize=8)
         if self.ws.preview.live_curve is None:
             self.axes[0].set_title("live mapping: computing…", fontsize=8)
         else:
-            self.axes[0].legend(fontsize=7, loc="lower left")
+            handles, labels = self.axes[0].get_legend_handles_labels()
+            unique = dict(zip(labels, handles, strict=True))  # one entry per kind of point
+            self.axes[0].legend(unique.values(), unique.keys(), fontsize=7, loc="lower left")
         self._markers = []
         self._move_marker()
 
@@ -812,3 +851,8 @@ class QualityCurvePanel(QWidget):
 
 LIVE_LABEL = "live mapping"
 EXPORTED_LABEL = "as exported"
+FAILED_LABEL = "as exported, fails the gate"
+FAILED_COLOUR = "#b03a2e"
+OFF_SCALE_LABEL = "below -1, drawn at -1"
+#: Where the plot of a ratio (worst Jacobian, worst tet collapse) stops below zero
+RATIO_FLOOR = -1.0

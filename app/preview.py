@@ -89,6 +89,8 @@ class PoseFigures:
         ``inverted`` split by the pre-flight check (``inverted.locked / movable / other``):
         locked between segments, with a node the repositioner may move, tied to one segment;
         known for an export's report, ``None`` for a live pose.
+    passes_gate : bool, optional
+        Whether the export passes the quality gate (``gate.passed``); ``None`` for a live pose.
     """
 
     inverted: int
@@ -97,6 +99,7 @@ class PoseFigures:
     worst_tet_collapse: float = float("nan")
     jacobian_says_something: bool = True
     split: tuple[int, int, int] | None = None
+    passes_gate: bool | None = None
 
     @classmethod
     def from_report(cls, report: Mapping[str, Any], model: Model) -> PoseFigures:
@@ -118,6 +121,7 @@ class PoseFigures:
             float("nan") if collapse is None else float(collapse),
             jacobian_says_something(model),
             split,
+            bool(report["gate"]["passed"]) if "gate" in report else None,
         )
 
     def text(self) -> str:

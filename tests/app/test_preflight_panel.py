@@ -115,6 +115,22 @@ def test_an_export_that_fails_the_gate_says_so_in_the_banner(welded_window, qtbo
     assert INDICATOR_STYLES["fails the gate"][0] in indicator.styleSheet()
     for reason in report["gate"]["reasons"]:
         assert reason in indicator.toolTip()
+    # the quality panel splits them too and marks the locked ones among the worst elements
+    panel = win.quality_panel
+    panel.refresh()
+    assert f"inverted {inverted['total']} ({inverted['locked']} locked," in panel.stats.text()
+    rows = [panel.worst.item(k).text() for k in range(panel.worst.count())]
+    marked = {int(r.split()[0]) for r in rows if r.endswith("locked")}
+    listed = {int(r.split()[0]) for r in rows}
+    assert marked and marked == listed & set(inverted["locked_ids"])
+    # the quality-against-flexion plot draws the failing export in its own mark, on the plot
+    # even where its worst Jacobian is below the plot's -1
+    curve = win.quality_curve_panel
+    worst = ws.exported.figures.worst_jacobian
+    marks = {angle: rest for angle, *rest in curve.exported_marks("worst_jacobian")}
+    y, failed, off = marks[60.0]
+    assert failed and off == (worst < -1.0) and y == max(worst, -1.0)
+    assert not any(m[1] for a, m in marks.items() if a != 60.0)  # the others pass
     with pytest.raises(ExportBlocked, match="fails the quality gate"):
         ws.export(tmp_path / "posed.k")
     assert not (tmp_path / "posed.k").exists()
