@@ -78,6 +78,8 @@ region = t.get("relax_region", 0.0)
 split = {
     "relaxation setup (first export)": rep.timings_s.get("relaxation", 0.0)
     + rep.timings_s.get("relaxation contact", 0.0),
+    "volume correction": t.get("volume_correction", 0.0)
+    + rep.timings_s.get("volume correction", 0.0),
     "region finding": region,
     "relaxation": t.get("pose_relax", 0.0) - region,
     "smoothing": t.get("smoothing", 0.0),

@@ -13,6 +13,7 @@ from kneegui.errors import SetupError
 from kneegui.io.atomic import atomic_write_text
 from kneegui.io.lsdyna import read_deck
 from kneegui.io.output_plan import check_distinct_targets
+from kneegui.meshopt.volume_correction import VolumeCorrectionOptions
 from kneegui.reposition import METHODS, Repositioner, RepositionOptions
 from kneegui.reposition.pipeline import angle_tag, export_pose
 from kneegui.setup import load_setup
@@ -99,6 +100,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--flatten", action="store_true", help="inline every *INCLUDE")
     parser.add_argument("--method", choices=METHODS, help="soft-tissue method (default: best)")
+    parser.add_argument(
+        "--restore-volume",
+        action="store_true",
+        help="before the relaxation, one smoothed step that gives the soft solids back their "
+        "rest volumes (for fine meshes whose volume change the quality stage cannot remove; "
+        "docs/repositioning.md)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -107,7 +115,10 @@ def run(args: argparse.Namespace) -> int:
     t_read = time.perf_counter() - t
     t = time.perf_counter()
     setup = load_setup(args.setup, model)
-    options = RepositionOptions(method=args.method) if args.method else RepositionOptions()
+    options = RepositionOptions(
+        **({"method": args.method} if args.method else {}),
+        volume_correction=VolumeCorrectionOptions() if args.restore_volume else None,
+    )
     t_setup = time.perf_counter() - t
     t = time.perf_counter()
     bar = ProgressBar("precompute")

@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from kneegui.meshopt.foldover import RelaxOptions, RelaxReport
 from kneegui.meshopt.quality_optimiser import QualityOptimisationReport, QualityOptions
 from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
+from kneegui.meshopt.volume_correction import VolumeCorrectionReport
 
 ProgressCallback = Callable[[float, str], None]
 CancelCallback = Callable[[], bool]
@@ -94,11 +95,15 @@ class ImprovementReport:
         Stage 3 (None when it did not run).
     relaxed : (N, 3) ndarray
         The coordinates after stages 1 and 2, before the smoothing.
+    volume_correction : VolumeCorrectionReport or None
+        The caller's volume-restoring step before stage 1
+        (:mod:`kneegui.meshopt.volume_correction`), when it ran.
     """
 
     relaxation: RelaxReport | None
     smoothing: SmoothingReport | None
     relaxed: NDArray[np.float64]
+    volume_correction: VolumeCorrectionReport | None = None
 
 
 class ImprovementRegion(Protocol):

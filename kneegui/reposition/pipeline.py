@@ -11,7 +11,7 @@ from kneegui.reproducible import dispatch_state
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -310,7 +310,14 @@ def pose_model(
         timings["relax_region"] = relaxation.region_seconds + (
             relaxation.quality.region_seconds if relaxation.quality is not None else 0.0
         )
-    timings["pose"] = result.timings_s["total"] + timings.get("pose_relax", 0.0)
+    correction = improved.volume_correction
+    if correction is not None:
+        timings["volume_correction"] = correction.seconds
+    timings["pose"] = (
+        result.timings_s["total"]
+        + timings.get("pose_relax", 0.0)
+        + timings.get("volume_correction", 0.0)
+    )
     posed = model.with_coords(improved.relaxed)
     measuring("measuring the quality")
     t = time.perf_counter()
@@ -358,6 +365,7 @@ def pose_model(
         "axis_sensitivity": None
         if repositioner.axes.sensitivity is None
         else repositioner.axes.sensitivity.to_dict(),
+        "volume_correction": None if correction is None else asdict(correction),
         "relaxation": None if relaxation is None else relaxation.to_dict(),
         "smoothing": None if smoothing is None else smoothing.to_dict(),
         "skin": None

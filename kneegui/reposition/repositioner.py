@@ -37,6 +37,7 @@ from kneegui.meshopt.chain import (
 )
 from kneegui.meshopt.quality_optimiser import quality_aims
 from kneegui.meshopt.smoothing_pipeline import smooth_posed_model
+from kneegui.meshopt.volume_correction import VolumeCorrection, VolumeCorrectionOptions
 from kneegui.model import Model
 from kneegui.quality import compute_quality
 from kneegui.quality.metrics import QualityResult
@@ -196,6 +197,14 @@ class RepositionOptions:
         bone leaves it (the mapping carried it in along a smooth field, so neighbours leave at
         neighbouring places instead of at opposite faces of the bone); blended in between.
         ``None``: always the nearest point.
+    volume_correction : VolumeCorrectionOptions or None
+        Before the relaxation (the export, never the slider), one smoothed, linearised step that
+        gives the soft solids back their rest volumes over the relaxable region
+        (:mod:`kneegui.meshopt.volume_correction`): the mapping's long-wavelength volume change,
+        which the quality stage's local moves remove on a coarse mesh but not on a fine one.
+        ``None`` (the default) leaves it out: on the coarse demo built at 0° it left the export
+        at 120° worse (docs/repositioning.md, "The mapping's volume change restored before the
+        relaxation"). ``kneegui pose --restore-volume`` turns it on.
     """
 
     method: str = "blend"
@@ -218,6 +227,7 @@ class RepositionOptions:
     improvement: ImprovementOptions = field(default_factory=ImprovementOptions)
     volume_change: float | None = 0.15
     contour_margin: float | None = 0.5
+    volume_correction: VolumeCorrectionOptions | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -412,6 +422,7 @@ class Repositioner:
         self._relax_contact: BoneContact | None = None  # built on first use, like the relaxation
         # the relaxation's precompute is left to its first use: the slider never needs it, and
         # on a 1M-element model it costs more than everything above
+        self._volume_correction: VolumeCorrection | None = None  # built on first use
         self.relaxation: ElasticRelaxation | None = None
         self._overlap_check: BoneOverlapCheck | None = None
         self._near_soft: NDArray[np.int64] | None = None  # soft nodes the in-bone check measures
@@ -886,6 +897,7 @@ class Repositioner:
         if not relax:
             options = replace(options, relax=None)
         relaxation = None
+        corrected = None
         report_progress = progress or (lambda fraction, message: None)
 
         def check(step: str) -> None:
@@ -903,6 +915,14 @@ class Repositioner:
             relaxation = self.relaxation
             # the relaxation was built with the method's choice of slide_skin
             options = replace(options, relax=relaxation.options)
+            if self.options.volume_correction is not None:
+                if self._volume_correction is None:
+                    check("preparing the volume correction")
+                    t = time.perf_counter()
+                    self._volume_correction = self._build_volume_correction(relaxation)
+                    self.timings_s["volume correction"] = time.perf_counter() - t
+                check("restoring the tissue's volume")
+                coords, corrected = self._volume_correction(coords, cancel)
             if self._contact is None and self.options.relax_contact_reach > 0:
                 # push the tissue the mapping put into the bones back out first, spread
                 # through the tissue behind it: the relaxation then starts from a pose outside
@@ -929,7 +949,22 @@ class Repositioner:
         if len(self._midside):
             coords = self._midside_on_edges(coords, bone)
             report = replace(report, relaxed=self._midside_on_edges(report.relaxed, bone))
-        return coords, report
+        return coords, replace(report, volume_correction=corrected)
+
+    def _build_volume_correction(self, relaxation: ElasticRelaxation) -> VolumeCorrection:
+        """The volume-restoring step over the soft solids, moving the relaxable nodes."""
+        soft = set(self.setup.parts_of(*SOFT_ROLES))
+        rows = {
+            etype: np.flatnonzero(np.isin(block.part_ids, list(soft)))
+            for etype, block in self.model.blocks.items()
+        }
+        return VolumeCorrection(
+            self.model.blocks,
+            rows,
+            relaxation.is_free,
+            self.model.coords,
+            self.options.volume_correction,
+        )
 
     def _midside_on_edges(self, coords: NDArray[np.float64], bone: BonePose) -> NDArray[np.float64]:
         """``coords`` with the mid-side nodes of the 10-node tets on their edges as at rest and

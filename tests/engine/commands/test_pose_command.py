@@ -145,3 +145,24 @@ def test_bad_input_exit_2_one_line_nothing_written(demo_files, tmp_path, args, f
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in result.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_restore_volume_runs_the_step_and_reports_it(demo_files, tmp_path):
+    """``--restore-volume``: the export restores the soft solids' volumes before relaxing; the
+    report says what the step did, and without the flag it does not run."""
+    deck, setup = demo_files
+    reports = {}
+    for flag in ((), ("--restore-volume",)):
+        report = tmp_path / f"leg{len(flag)}.json"
+        result = kneegui(
+            "pose", str(deck), "--setup", str(setup), "--flexion", "60",
+            "--out", str(tmp_path / f"leg{len(flag)}.k"), "--report", str(report), "--force",
+            *flag, cwd=tmp_path,
+        )  # fmt: skip
+        assert result.returncode in (0, 3), result.stdout + result.stderr
+        reports[bool(flag)] = json.loads(report.read_text())
+    assert reports[False]["volume_correction"] is None
+    step = reports[True]["volume_correction"]
+    assert step["converged"] and step["aimed"] > 0 and step["largest_move"] > 0
+    assert reports[True]["timings_s"]["volume_correction"] == step["seconds"]
+    assert reports[True]["quality"]["smoothed"]["inverted"] == 0
