@@ -30,6 +30,7 @@ OPTION_DEFAULTS: dict[str, Any] = {
     "method": "",  # "" = the repositioner's default method
     "force": False,
     "flatten": False,
+    "restore_volume": False,
 }
 TOP_KEYS = ("output", "defaults", "deck")
 OUTPUT_KEYS = ("folder",)
@@ -59,6 +60,9 @@ class PostureOptions:
         Write the deck even if it fails the quality gate.
     flatten : bool
         Inline every ``*INCLUDE``.
+    restore_volume : bool
+        Restore the soft solids' volumes before the relaxation (``kneegui pose
+        --restore-volume``; :mod:`kneegui.meshopt.volume_correction`).
     """
 
     smooth: bool = True
@@ -66,6 +70,7 @@ class PostureOptions:
     method: str = ""
     force: bool = False
     flatten: bool = False
+    restore_volume: bool = False
 
 
 @dataclass(frozen=True)

@@ -115,6 +115,7 @@ def make_tasks(plan: Plan) -> list[PostureTask]:
             "kinematics": [[q, c, _table_digest(c)] for q, c in p.kinematics],
             "relax": p.options.relax,
             "method": p.options.method,
+            "restore_volume": p.options.restore_volume,
             "kneegui": __version__,
         }
         inputs = dict(pre, flexion=p.flexion, options=asdict(p.options), posture=p.id)

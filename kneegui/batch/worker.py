@@ -103,6 +103,7 @@ def file_sha256(path: str | Path) -> str:
 def _repositioner(task: PostureTask) -> tuple[Any, dict[str, float], bool]:
     """The posture's repositioner: from the cache, or read, set up and precomputed now."""
     from kneegui.io.lsdyna import read_deck
+    from kneegui.meshopt.volume_correction import VolumeCorrectionOptions
     from kneegui.reposition import Repositioner, RepositionOptions
     from kneegui.setup import load_setup
 
@@ -120,9 +121,11 @@ def _repositioner(task: PostureTask) -> tuple[Any, dict[str, float], bool]:
         data = setup.to_dict()
         data["kinematics"].update(dict(p.kinematics))
         setup = load_setup(data, model)
-    opts = {"relax": p.options.relax}
+    opts: dict = {"relax": p.options.relax}
     if p.options.method:
         opts["method"] = p.options.method
+    if p.options.restore_volume:
+        opts["volume_correction"] = VolumeCorrectionOptions()
     t_setup = time.perf_counter() - t
     t = time.perf_counter()
     repositioner = Repositioner(model, setup, RepositionOptions(**opts))

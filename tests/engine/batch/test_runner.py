@@ -131,3 +131,35 @@ flexion = 40
     assert json.loads((plan.out / "good/setup/flex_40/report.json").read_text())["written"] == []
     summary = (plan.out / "summary.md").read_text()
     assert "| bad/setup/flex_30 | error |" in summary
+
+
+def test_restore_volume_in_a_plan_runs_the_volume_step(demo_decks, tmp_path):
+    """``restore_volume = true`` for one deck: its report has the step, the other's has none."""
+    deck, setup = demo_decks["right"]
+    (tmp_path / "plan.toml").write_text(
+        f"""[output]
+folder = "out"
+[defaults]
+smooth = false
+force = true
+[[deck]]
+name = "plain"
+deck = "{deck}"
+setup = "{setup}"
+flexion = 60
+[[deck]]
+name = "restored"
+deck = "{deck}"
+setup = "{setup}"
+flexion = 60
+restore_volume = true
+"""
+    )
+    plan = load_plan(tmp_path / "plan.toml")
+    assert [p.options.restore_volume for p in plan.postures] == [False, True]
+    outcome = run_plan(plan, workers=1)
+    assert outcome.errors == 0
+    plain = json.loads((plan.out / "plain/setup/flex_60/report.json").read_text())
+    restored = json.loads((plan.out / "restored/setup/flex_60/report.json").read_text())
+    assert plain["volume_correction"] is None
+    assert restored["volume_correction"]["aimed"] > 0
