@@ -500,10 +500,13 @@ class QualityPanel(QWidget):
                 worst.append(f"worst tet collapse {np.nanmin(q.concatenated('tet_collapse')):.3f}")
             if "jacobian" in offered:
                 worst.append(f"worst Jacobian {q.worst_jacobian():.3f}")
-            inverted = f"inverted {q.n_inverted}"
-            figures = ws.view_figures() if ws.exported is not None else None
-            if figures is not None and figures.split is not None and q.n_inverted:
-                inverted = figures.text().split(" · ")[0]  # split as the export's report
+            # an exported pose's count split as its report splits it
+            exported = ws.exported
+            inverted = (
+                exported.figures.inverted_text()
+                if exported is not None
+                else f"inverted {q.n_inverted}"
+            )
             self.stats.setText(
                 f"{q.n_elements} measured · {inverted} · {' · '.join(worst)}\n"
                 f"{label}: min {finite.min():.3g}, mean {finite.mean():.3g}, "
@@ -799,9 +802,10 @@ class QualityCurvePanel(QWidget):
             live_x, live_y, _, _ = data[name]
             if len(live_x):
                 ax.plot(live_x, live_y, color=colour, lw=1.2, label=LIVE_LABEL)
+            marks = self.exported_marks(name)
             for failed in (False, True):
                 for off in (False, True):
-                    group = [m for m in self.exported_marks(name) if m[2:] == (failed, off)]
+                    group = [m for m in marks if m[2:] == (failed, off)]
                     if not group:
                         continue
                     ax.plot(

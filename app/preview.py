@@ -129,19 +129,25 @@ class PoseFigures:
         tet collapse before the Jacobian on a model with tets (and without the Jacobian when
         it says nothing there). An export's inverted elements are split as its report splits
         them: ``inverted 16 (8 locked, 8 movable)``."""
-        parts = [f"inverted {self.inverted}"]
-        if self.split is not None and self.inverted:
-            locked, movable, other = self.split
-            named = [f"{locked} locked", f"{movable} movable"]
-            if other:
-                named.append(f"{other} tied to one bone")
-            parts[0] += f" ({', '.join(named)})"
+        parts = [self.inverted_text()]
         if np.isfinite(self.worst_tet_collapse):
             parts.append(f"worst tet collapse {self.worst_tet_collapse:.3f}")
         if self.jacobian_says_something or not np.isfinite(self.worst_tet_collapse):
             parts.append(f"worst Jacobian {self.worst_jacobian:.3f}")
         parts.append(f"largest volume change {self.max_volume_change_pct:+.1f} %")
         return " · ".join(parts)
+
+    def inverted_text(self) -> str:
+        """``inverted 16``, split where the export's report split it: ``inverted 16 (8 locked,
+        8 movable)`` (and ``N tied to one bone`` when there are such)."""
+        text = f"inverted {self.inverted}"
+        if self.split is None or not self.inverted:
+            return text
+        locked, movable, other = self.split
+        named = [f"{locked} locked", f"{movable} movable"]
+        if other:
+            named.append(f"{other} tied to one bone")
+        return f"{text} ({', '.join(named)})"
 
 
 def pose_figures(model: Model, quality: QualityResult, initial: QualityResult) -> PoseFigures:

@@ -29,6 +29,7 @@ of rows: the same result for any number of threads.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -187,8 +188,6 @@ class VolumeCorrection:
         self, x: NDArray[np.float64], cancel: Callable[[], bool] | None = None
     ) -> tuple[NDArray[np.float64], VolumeCorrectionReport]:
         """``x`` with the free nodes moved by the step (a new array), and its report."""
-        import time
-
         t = time.perf_counter()
         opt = self.options
         n_free = len(self.free)

@@ -97,29 +97,28 @@ def test_resume_redoes_only_postures_whose_outputs_are_incomplete(reference_run,
     assert redone == {"right/setup/flex_40", "left/setup/flex_120", "left/setup/flex_0"}
 
 
+def small_plan(folder, defaults: str, decks: list[tuple]):
+    """A plan in ``folder/plan.toml`` (output ``folder/out``) with these ``[defaults]`` lines and
+    one ``[[deck]]`` per ``(name, deck, setup, flexion, extra lines)``, loaded."""
+    entries = "".join(
+        f'[[deck]]\nname = "{name}"\ndeck = "{deck}"\nsetup = "{setup}"\nflexion = {flexion}\n'
+        f"{extra}\n"
+        for name, deck, setup, flexion, extra in decks
+    )
+    path = folder / "plan.toml"
+    path.write_text(f'[output]\nfolder = "out"\n[defaults]\n{defaults}\n{entries}')
+    return load_plan(path)
+
+
 def test_a_failing_posture_is_recorded_and_the_others_go_on(demo_decks, tmp_path):
     deck, setup = demo_decks["right"]
     bad_setup = tmp_path / "bad.setup.json"
     bad_setup.write_text(setup.read_text().replace('"femur": [', '"femur": [999999, '))
-    (tmp_path / "plan.toml").write_text(
-        f"""[output]
-folder = "out"
-[defaults]
-relax = false
-smooth = false
-[[deck]]
-name = "bad"
-deck = "{deck}"
-setup = "{bad_setup}"
-flexion = [30, 60]
-[[deck]]
-name = "good"
-deck = "{deck}"
-setup = "{setup}"
-flexion = 40
-"""
+    plan = small_plan(
+        tmp_path,
+        "relax = false\nsmooth = false",
+        [("bad", deck, bad_setup, "[30, 60]", ""), ("good", deck, setup, "40", "")],
     )
-    plan = load_plan(tmp_path / "plan.toml")
     outcome = run_plan(plan, workers=1)
     assert (outcome.ok, outcome.gate_failed, outcome.errors) == (0, 1, 2)
     entries = json.loads((plan.out / "manifest.json").read_text())["postures"]
@@ -136,26 +135,14 @@ flexion = 40
 def test_restore_volume_in_a_plan_runs_the_volume_step(demo_decks, tmp_path):
     """``restore_volume = true`` for one deck: its report has the step, the other's has none."""
     deck, setup = demo_decks["right"]
-    (tmp_path / "plan.toml").write_text(
-        f"""[output]
-folder = "out"
-[defaults]
-smooth = false
-force = true
-[[deck]]
-name = "plain"
-deck = "{deck}"
-setup = "{setup}"
-flexion = 60
-[[deck]]
-name = "restored"
-deck = "{deck}"
-setup = "{setup}"
-flexion = 60
-restore_volume = true
-"""
+    plan = small_plan(
+        tmp_path,
+        "smooth = false\nforce = true",
+        [
+            ("plain", deck, setup, "60", ""),
+            ("restored", deck, setup, "60", "restore_volume = true"),
+        ],
     )
-    plan = load_plan(tmp_path / "plan.toml")
     assert [p.options.restore_volume for p in plan.postures] == [False, True]
     outcome = run_plan(plan, workers=1)
     assert outcome.errors == 0
