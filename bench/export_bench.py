@@ -23,6 +23,8 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results" / "export_scaling.json"
+#: ``--restore-volume`` runs (the opt-in step), kept apart from the default's table
+RESTORE_RESULTS = ROOT / "bench" / "results" / "export_restore_volume.json"
 ANGLE = 90.0
 #: The default demo's variant label: hexahedral soft solids, no element locked between bones.
 DEFAULT_VARIANT = "hex8"
@@ -39,7 +41,11 @@ from kneegui.reposition.repositioner import SOFT_ROLES
 from kneegui.setup import load_setup
 from kneegui.topology import SOLID_TYPES
 
+from kneegui.meshopt.volume_correction import VolumeCorrectionOptions
+from kneegui.reposition import RepositionOptions
+
 folder, angle = sys.argv[1], float(sys.argv[2])
+restore = len(sys.argv) > 3 and sys.argv[3] == "restore-volume"
 deck = os.path.join(folder, "demo_leg.k")
 model = read_deck(deck)
 setup = load_setup(os.path.join(folder, "demo_leg.setup.json"), model)
@@ -48,7 +54,8 @@ def clock():
     return time.perf_counter(), time.process_time()
 
 w, c = clock()
-rep = Repositioner(model, setup)
+volume = VolumeCorrectionOptions() if restore else None
+rep = Repositioner(model, setup, RepositionOptions(volume_correction=volume))
 pre = {"wall_s": time.perf_counter() - w, "cpu_s": time.process_time() - c,
        "breakdown_s": dict(rep.timings_s)}
 # how long a cancel would wait: the longest time between two of the export's cancel checks
@@ -130,10 +137,17 @@ def _p95(run: dict[str, Any]) -> str:
     return "not recorded" if value is None else f"{value:.1f} %"
 
 
-def measure(folder: Path, angle: float = ANGLE, timeout_s: float | None = None) -> dict[str, Any]:
-    """One size in a fresh process (see the module docstring)."""
+def measure(
+    folder: Path,
+    angle: float = ANGLE,
+    timeout_s: float | None = None,
+    restore_volume: bool = False,
+) -> dict[str, Any]:
+    """One size in a fresh process (see the module docstring); ``restore_volume``: with the
+    opt-in volume step (``kneegui pose --restore-volume``)."""
+    flag = ["restore-volume"] if restore_volume else []
     proc = subprocess.run(
-        [sys.executable, "-c", _CHILD, str(folder), str(angle)],
+        [sys.executable, "-c", _CHILD, str(folder), str(angle), *flag],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -146,10 +160,14 @@ def measure(folder: Path, angle: float = ANGLE, timeout_s: float | None = None) 
     return out
 
 
-def measure_repeated(folder: Path, angle: float = ANGLE, repeats: int = 1) -> dict[str, Any]:
+def measure_repeated(
+    folder: Path, angle: float = ANGLE, repeats: int = 1, restore_volume: bool = False
+) -> dict[str, Any]:
     """``repeats`` fresh-process runs of :func:`measure`; the run with the median export time
     (its stage split with it), and every run's export and precompute wall time."""
-    runs = [measure(folder, angle) for _ in range(max(1, repeats))]
+    runs = [
+        measure(folder, angle, restore_volume=restore_volume) for _ in range(max(1, repeats))
+    ]
     ok = [r for r in runs if "error" not in r]
     if not ok:
         return runs[-1]
@@ -374,19 +392,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--repeats", type=int, default=1, help="fresh-process runs per size (median kept)"
     )
+    parser.add_argument(
+        "--restore-volume",
+        action="store_true",
+        help="with the opt-in volume step; results to "
+        f"{RESTORE_RESULTS.relative_to(ROOT)}, not into the benchmark's table",
+    )
     args = parser.parse_args(argv)
+    out_file = RESTORE_RESULTS if args.restore_volume else RESULTS
     results: dict[str, Any] = {"angle": args.angle, "runs": []}
-    if args.merge and RESULTS.exists():
-        results = json.loads(RESULTS.read_text())
+    if args.merge and out_file.exists():
+        results = json.loads(out_file.read_text())
     results["machine"] = machine_description()
     results["load"] = " / ".join(f"{v:.1f}" for v in os.getloadavg())
     for folder in args.folders:
-        run = measure_repeated(folder, args.angle, args.repeats)
+        run = measure_repeated(folder, args.angle, args.repeats, args.restore_volume)
         results["runs"] = [r for r in results["runs"] if not _same_deck(r, run)] + [run]
         print(json.dumps(run), flush=True)
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(json.dumps(results, indent=2) + "\n")
-    write_docs(results)
+        out_file.parent.mkdir(parents=True, exist_ok=True)
+        out_file.write_text(json.dumps(results, indent=2) + "\n")
+    if not args.restore_volume:
+        write_docs(results)
     return 0
 
 
