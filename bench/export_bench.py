@@ -165,9 +165,7 @@ def measure_repeated(
 ) -> dict[str, Any]:
     """``repeats`` fresh-process runs of :func:`measure`; the run with the median export time
     (its stage split with it), and every run's export and precompute wall time."""
-    runs = [
-        measure(folder, angle, restore_volume=restore_volume) for _ in range(max(1, repeats))
-    ]
+    runs = [measure(folder, angle, restore_volume=restore_volume) for _ in range(max(1, repeats))]
     ok = [r for r in runs if "error" not in r]
     if not ok:
         return runs[-1]

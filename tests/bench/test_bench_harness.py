@@ -198,7 +198,7 @@ def test_export_bench_keeps_the_median_run_of_its_repeats(monkeypatch):
 
     walls = iter([9.0, 7.0, 8.0])
 
-    def fake_measure(folder, angle=90.0, timeout_s=None):
+    def fake_measure(folder, angle=90.0, timeout_s=None, restore_volume=False):
         wall = next(walls)
         return {
             "folder": str(folder),
