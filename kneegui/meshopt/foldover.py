@@ -235,6 +235,8 @@ class RelaxReport:
     min_det_after: float = float("nan")
     inverted_corners_before: int = 0
     inverted_corners_after: int = 0
+    #: corners left out as those of elements the bones leave no valid shape (welded tissue)
+    locked_corners: int = 0
     contact_nodes: int = 0
     deepest_penetration: float = 0.0
     seconds: float = 0.0

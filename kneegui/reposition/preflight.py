@@ -17,7 +17,8 @@ mapping is run):
     initial flexion outwards; the first sampled angle on each side where it is not positive is
     refined by bisection to :data:`REFINE_STEPS` halvings of the step. Elements with free nodes
     whose bone nodes span two such segments are locked beyond the first flexion at which those
-    bone nodes alone are proven to leave the free nodes no valid position (:func:`_feasible`).
+    bone nodes alone are proven to leave the free nodes no valid position
+    (:func:`~kneegui.quality.feasibility.could_be_valid`).
 *Coincident node pairs*
     Distinct nodes of elements at the same place (a sliding interface made of contact
     definitions, as at the demo's joint): count, and the parts on either side.
@@ -47,6 +48,7 @@ from scipy.spatial import cKDTree
 from kneegui.errors import raise_if_cancelled
 from kneegui.kinematics.posing import BonePose
 from kneegui.model import Model
+from kneegui.quality.feasibility import could_be_valid
 from kneegui.quality.kernels import corner_jacobian
 from kneegui.quality.metrics import QualityResult
 from kneegui.reposition.repositioner import NodeGroups, Repositioner
@@ -94,7 +96,8 @@ class LockedElements:
         Already inverted in the initial model (its limits are then NaN).
     free_nodes : (L,) ndarray of int
         Nodes the repositioner may move: 0 for an element tied wholly to bones; more for one
-        whose tied nodes alone leave it no valid shape beyond its limits (:func:`_feasible`).
+        whose tied nodes alone leave it no valid shape beyond its limits
+        (:func:`~kneegui.quality.feasibility.could_be_valid`).
     """
 
     etype: NDArray[np.str_]
@@ -453,7 +456,7 @@ def _valid(
     rest, ``labels`` (L, k) their segments (:data:`MOVABLE`: a free node, left where it is),
     ``rot`` (L, 4, 3, 3) and ``trans`` (L, 4, 3) one pose per element. Fully tied elements:
     a positive corner Jacobian; others: no proof that their free nodes cannot restore it
-    (:func:`_feasible`). Returns (L,)."""
+    (:func:`~kneegui.quality.feasibility.could_be_valid`). Returns (L,)."""
     idx = np.arange(len(points))[:, None]
     rot = np.concatenate([rot, np.broadcast_to(np.eye(3), (len(rot), 1, 3, 3))], axis=1)
     trans = np.concatenate([trans, np.zeros((len(trans), 1, 3))], axis=1)
@@ -464,54 +467,8 @@ def _valid(
     out = np.empty(len(points), dtype=bool)
     tied = ~free.any(axis=1)
     out[tied] = corner_jacobian(posed[tied], etype) > 0.0
-    out[~tied] = _feasible(posed[~tied], free[~tied], etype)
+    out[~tied] = could_be_valid(posed[~tied], free[~tied], etype)
     return out
-
-
-def _feasible(posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str) -> NDArray[np.bool_]:
-    """Whether elements with some nodes fixed at ``posed`` (L, k, 3) could still be valid
-    wherever their ``free`` (L, k) nodes go: False only with a proof that they cannot.
-
-    A corner's determinant is the signed volume of the tetrahedron of the corner and its three
-    neighbours, affine in each of its nodes. Proofs: (a) a corner with no free node whose
-    determinant is not positive; (b) for one free node, the corners in which it is the only
-    free node ask it to lie strictly on the positive side of the planes through their other
-    (fixed) nodes; when there are four such corners with independent normals ``g_c``
-    (determinant ``d_c + g_c . (x - x_0)``), they admit no position exactly when the one
-    combination ``sum l_c g_c = 0`` has every ``l_c >= 0`` and ``sum l_c d_c <= 0`` (Farkas'
-    lemma; the sum is the same for every ``x_0``). Corners with two free nodes are left out,
-    so a False is a proof and a True only means no proof was found. Fully fixed elements get
-    the plain corner test.
-    """
-    table = np.array(CORNER_TRIPLES[etype])
-    if (table < 0).any():  # a shell's corners are not volumes: no proof
-        return np.ones(len(posed), dtype=bool)
-    corners = posed[:, table]  # (L, C, 4, 3)
-    e1, e2, e3 = (corners[:, :, s] - corners[:, :, 0] for s in (1, 2, 3))
-    grads = np.stack(
-        [np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=2
-    )  # d det / d (node 1, 2, 3), (L, C, 3, 3)
-    det = np.einsum("lci,lci->lc", e1, grads[:, :, 0])
-    grads = np.concatenate([-grads.sum(axis=2, keepdims=True), grads], axis=2)
-    n_free = free[:, table].sum(axis=-1)  # (L, C)
-    ok = ~((n_free == 0) & (det <= 0.0)).any(axis=1)
-    for node in range(posed.shape[1]):
-        where = np.argwhere(table == node)  # (corner, slot) pairs holding the node
-        if len(where) != 4:
-            continue  # fewer than four half-spaces in 3-D always meet; more: not proven here
-        cs, slots = where[:, 0], where[:, 1]
-        use = free[:, node] & (n_free[:, cs] == 1).all(axis=1) & ok
-        if not use.any():
-            continue
-        g = grads[use][:, cs, slots]  # (u, 4, 3): one normal per corner
-        u, sv, _ = np.linalg.svd(g, full_matrices=True)
-        independent = sv[:, 2] > 1e-9 * sv[:, 0]
-        lam = u[:, :, 3]  # spans the null space of g^T when the normals are independent
-        lam = lam * np.where(lam.sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
-        proof = independent & (lam >= 0.0).all(axis=1)
-        proof &= np.einsum("uc,uc->u", lam, det[use][:, cs]) <= 0.0
-        ok[np.flatnonzero(use)[proof]] = False
-    return ok
 
 
 def _limits(
@@ -739,7 +696,7 @@ def run_preflight(
             continue
         check()
         # the segments of each element's tied nodes; its free nodes, if any, may still be
-        # unable to save it (:func:`_feasible`)
+        # unable to save it (:func:`~kneegui.quality.feasibility.could_be_valid`)
         mask = np.bitwise_or.reduce(bits[labels[block.conn]], axis=1) & ~bits[MOVABLE]
         tied_rows = np.flatnonzero(several[mask])
         if len(tied_rows):

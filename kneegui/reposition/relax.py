@@ -60,6 +60,7 @@ from kneegui.meshopt.quality_optimiser import (
 )
 from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
 from kneegui.model import ElementBlock
+from kneegui.quality.feasibility import could_be_valid
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult, compute_quality
 from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
@@ -286,6 +287,64 @@ def edge_adjacency(
 #: :meth:`NodeRows.touching` marks the rows in a mask rather than sorting them once they are
 #: more than one in this many of all rows (the same sorted rows either way).
 TOUCHING_MASK_SHARE = 16
+
+
+class LockedCorners:
+    """The corners (rows of a relaxation's ``tets``) of the elements whose fixed nodes lie on
+    two rigid segments or more while some of their nodes are free: tissue welded to femur and
+    tibia across the joint. At a pose, :meth:`rows` gives the corners of those the bones'
+    motion leaves no valid shape, whatever their free nodes do
+    (:func:`~kneegui.quality.feasibility.could_be_valid`, the pre-flight check's proof).
+
+    Such an element stays inverted however the tissue moves; its corners in the energy would
+    pull its free nodes, and the neighbours they share, towards a shape that does not exist
+    (the coarse welded demo at 90 deg: 54 movable elements inverted with them, 27 without).
+    """
+
+    def __init__(
+        self,
+        blocks: Mapping[str, ElementBlock],
+        is_free: NDArray[np.bool_],
+        segment_of: NDArray[np.int64],
+        tets: NDArray[np.integer],
+        node_rows: NodeRows,
+    ) -> None:
+        n = len(segment_of)
+        self._groups: list[tuple[str, NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]]
+        self._groups = []
+        self.elements = 0
+        for etype, block in blocks.items():
+            table = CORNER_TRIPLES.get(etype)
+            if table is None or etype not in SOLID_TYPES or len(block.conn) == 0:
+                continue
+            conn = np.asarray(block.conn, dtype=np.int64)
+            free = is_free[conn]
+            seg = np.where(free, -1, segment_of[conn])
+            on = seg >= 0
+            lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
+            hi = np.where(on, seg, -1).max(axis=1)
+            pick = np.flatnonzero(free.any(axis=1) & on.any(axis=1) & (lo != hi))
+            if not len(pick):
+                continue
+            corners = conn[pick][:, np.array(table)].reshape(-1, 4)
+            owner = np.repeat(np.arange(len(pick)), len(table))
+            # the relaxation keeps only some of an element's corners (a free node, usable at
+            # rest, not pinned): find each kept one's row among the corners around its nodes
+            near = node_rows.touching(sorted_unique(corners.ravel()[corners.ravel() < n]))
+            where = {tuple(int(v) for v in tets[r]): int(r) for r in near}
+            found = np.array([where.get(tuple(int(v) for v in c), -1) for c in corners.tolist()])
+            kept = found >= 0
+            self._groups.append((etype, conn[pick], found[kept], owner[kept]))
+            self.elements += len(pick)
+
+    def rows(self, x: NDArray[np.float64], is_free: NDArray[np.bool_]) -> NDArray[np.int64]:
+        """Sorted corner rows of the elements that no position of their ``is_free`` nodes can
+        make valid with their other nodes at ``x``."""
+        out = [np.zeros(0, dtype=np.int64)]
+        for etype, conn, rows, owner in self._groups:
+            locked = ~could_be_valid(x[conn], is_free[conn], etype)
+            out.append(rows[locked[owner]])
+        return sorted_unique(np.concatenate(out))
 
 
 class NodeRows:
@@ -524,6 +583,15 @@ class ElasticRelaxation:
         check()
         # corner rows by (real) node, to pick the corners touching a set of nodes
         self._node_rows = NodeRows(self.tets, n)
+        # elements welded to two bones with free nodes: their corners leave the energy at a
+        # pose that proves them locked
+        self._locked = None
+        if segment_of is not None and blocks is not None:
+            check()
+            self._locked = LockedCorners(
+                blocks, self.is_free, np.asarray(segment_of, dtype=np.int64), self.tets,
+                self._node_rows,
+            )  # fmt: skip
         self.bones = {
             name: tri if isinstance(tri, BoneSurfaceDistance) else BoneSurfaceDistance(tri)
             for name, tri in (bones or {}).items()
@@ -781,11 +849,16 @@ class ElasticRelaxation:
 
     # ------------------------------------------------------------------ solve
     def energy(
-        self, free: NDArray[np.int64], cancel: Callable[[], bool] | None = None
+        self,
+        free: NDArray[np.int64],
+        cancel: Callable[[], bool] | None = None,
+        skip: NDArray[np.int64] | None = None,
     ) -> FoldoverEnergy:
-        """The foldover-free energy of the corners touching the nodes ``free`` (``cancel`` is
-        asked while it is built)."""
+        """The foldover-free energy of the corners touching the nodes ``free`` but the sorted
+        rows ``skip`` (``cancel`` is asked while it is built)."""
         rows = self._node_rows.touching(free)
+        if skip is not None and len(skip):
+            rows = rows[~np.isin(rows, skip, assume_unique=True)]
         raise_if_cancelled(cancel, "relaxation cancelled while its energy was built")
         return FoldoverEnergy(
             self.tets[rows],
@@ -800,6 +873,14 @@ class ElasticRelaxation:
             rows=rows,
             cancel=cancel,
         )
+
+    def locked_corners(self, x: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Sorted rows of the corners of the elements that the bones at ``x`` leave no valid
+        shape whatever the free nodes do (:class:`LockedCorners`); none without ``segment_of``
+        and ``blocks``."""
+        if self._locked is None:
+            return np.zeros(0, dtype=np.int64)
+        return self._locked.rows(x, self.is_free)
 
     def region(self, transforms: Mapping[str, RigidTransform] | None = None) -> RelaxedRegion:
         """This relaxation for a pose whose bones moved by ``transforms`` (None: no contact), as
@@ -877,13 +958,15 @@ class ElasticRelaxation:
             optimise_next = (
                 stop_when_untangled and self.blocks is not None and self.aims is not None
             )
+            skip = self.locked_corners(x)
+            report.locked_corners = len(skip)
             x, d_min, whole, det = self._minimise_energy(
-                x, free, contact_transforms, optimise_next, report, progress, cancel
+                x, free, contact_transforms, optimise_next, report, progress, cancel, skip=skip
             )
             if d_min <= 0 and self.options.slow_eps_decrease > 0:
                 x, d_min = self._slow_pass(
                     pose, x, whole, det, contact_transforms, optimise_next, report, progress,
-                    cancel,
+                    cancel, skip,
                 )  # fmt: skip
         x = self.carry_midside(coords, x)
         return self.midside_out_of_bones(x, transforms if use_contact else None), report, d_min > 0
@@ -899,6 +982,7 @@ class ElasticRelaxation:
         report: RelaxReport,
         report_progress: ProgressCallback,
         should_cancel: Callable[[], bool],
+        skip: NDArray[np.int64] | None = None,
     ) -> tuple[NDArray[np.float64], float]:
         """The last pass when the rounds and restarts left corners inverted at ``x`` (``det``
         over the corners of their region's energy ``whole``, as :meth:`_minimise_energy`
@@ -920,7 +1004,7 @@ class ElasticRelaxation:
 
         slow = replace(opt, eps_decrease=opt.slow_eps_decrease)
         x_slow, _, _, _ = self._minimise_energy(
-            start, region, transforms, optimise_next, second, progress, should_cancel, slow
+            start, region, transforms, optimise_next, second, progress, should_cancel, slow, skip
         )
         _, _, det_slow = whole.energy(x_slow[whole.nodes], 1e-9)
         before = (int(np.sum(det <= 0)), -float(det.min()))
@@ -953,15 +1037,16 @@ class ElasticRelaxation:
         report_progress: ProgressCallback,
         should_cancel: Callable[[], bool],
         options: RelaxOptions | None = None,
+        skip: NDArray[np.int64] | None = None,
     ) -> tuple[NDArray[np.float64], float, FoldoverEnergy, NDArray[np.float64]]:
         """The energy's rounds (and restarts) over the region ``free``, with contact when
         ``transforms`` are given, ending as soon as nothing is inverted when the quality
         optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates,
         the smallest corner det J, the region's energy and its corners' det J at the end (what
         the slow pass starts from). ``options`` replaces the relaxation's own for this run (the
-        slow pass's schedule)."""
+        slow pass's schedule). The corners ``skip`` (:meth:`locked_corners`) are left out."""
         opt = options or self.options
-        whole = sub = self.energy(free, should_cancel)
+        whole = sub = self.energy(free, should_cancel, skip)
         raise_if_cancelled(should_cancel, "relaxation cancelled")
         x_start = x.copy()  # the pose: where a restart puts stuck nodes back
         _, _, det = sub.energy(x[sub.nodes], 1e-3)
@@ -1015,7 +1100,7 @@ class ElasticRelaxation:
                 sub = whole
                 if opt.restart_rings > 0:
                     sub = self.energy(
-                        self._within_rings(stuck, opt.restart_rings, free), should_cancel
+                        self._within_rings(stuck, opt.restart_rings, free), should_cancel, skip
                     )
                 # a sliding skin node cannot leave its tangent plane, so the tissue pressed
                 # against it from inside (by a bone, or pinched in a crease) has nowhere to go:
@@ -1139,7 +1224,7 @@ class ElasticRelaxation:
                     # whole-body model each holds hundreds of MB of corners
                     sub = fun = None
                     if isinstance(focus, np.ndarray):
-                        sub = self.energy(focus, should_cancel)
+                        sub = self.energy(focus, should_cancel, skip)
                     else:
                         sub = focus
                     xl, scale, sliding, is_sub_free, contact_global = variables(sub, pass_contact)

@@ -674,10 +674,10 @@ def test_a_focused_round_lets_the_last_rounds_energy_go_before_building_its_own(
     built, alive_then = [], []
     energy = relax.energy
 
-    def counting_energy(nodes, cancel=None):
+    def counting_energy(nodes, cancel=None, skip=None):
         gc.collect()
         alive_then.append(sum(ref() is not None for ref in built))
-        sub = energy(nodes, cancel)
+        sub = energy(nodes, cancel, skip)
         built.append(weakref.ref(sub))
         return sub
 

@@ -196,7 +196,7 @@ KNOWN_MISSES = {
     **{
         ("welded", angle, "export"): "the welded joint keeps movable elements inverted "
         f"(coarse demo, locked / movable: {counts}; docs/repositioning.md, known limits)"
-        for angle, counts in ((60.0, "24 / 18"), (90.0, "62 / 54"), (120.0, "104 / 102"))
+        for angle, counts in ((60.0, "24 / 8"), (90.0, "62 / 27"), (120.0, "104 / 79"))
     },
     ("welded", 90.0, "quality"): "worst corner Jacobian below zero (inverted elements)",
     ("welded", 0.0, "quality"): "worst corner Jacobian 0.225 against the initial 0.330: the "
@@ -259,6 +259,20 @@ def test_quality_at_0_and_90_no_worse_than_initial(cells, name, angle):
             measure,
             cell,
         )
+
+
+def test_welded_joint_corners_proven_locked_leave_the_energy(cells, repositioners):
+    """The welded joint at 90 deg: the untangling leaves out the corners of the elements the
+    bones leave no valid shape (their free nodes cannot save them: the pre-flight's proof at
+    this pose), and keeps fewer movable elements inverted than when their corners pulled the
+    tissue around them (coarse demo, 6 December: 54 with them, 27 without; the cell's target
+    of none is still a known miss)."""
+    cell = cells("welded", 90.0)
+    _, rep = repositioners("welded")
+    relaxation = rep.relaxation
+    locked = relaxation.locked_corners(rep.pose(90.0))
+    assert len(locked) > 20
+    assert cell.inverted_movable <= 40, cell
 
 
 def test_the_relaxed_nodes_take_the_mid_side_nodes_of_their_edges(repositioners):
