@@ -317,16 +317,22 @@ class LockedCorners:
             table = CORNER_TRIPLES.get(etype)
             if table is None or etype not in SOLID_TYPES or len(block.conn) == 0:
                 continue
-            conn = np.asarray(block.conn, dtype=np.int64)
-            free = is_free[conn]
-            seg = np.where(free, -1, segment_of[conn])
-            on = seg >= 0
-            lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
-            hi = np.where(on, seg, -1).max(axis=1)
-            pick = np.flatnonzero(free.any(axis=1) & on.any(axis=1) & (lo != hi))
+            picks = []
+            # in chunks of corners: a whole-body model has millions of elements, few of them
+            # welded to two bones
+            for start in range(0, len(block.conn), CORNER_CHUNK):
+                part = np.asarray(block.conn[start : start + CORNER_CHUNK], dtype=np.int64)
+                free = is_free[part]
+                seg = np.where(free, -1, segment_of[part])
+                on = seg >= 0
+                lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
+                hi = np.where(on, seg, -1).max(axis=1)
+                picks.append(start + np.flatnonzero(free.any(axis=1) & (lo != hi) & (hi >= 0)))
+            pick = np.concatenate(picks)
             if not len(pick):
                 continue
-            corners = conn[pick][:, np.array(table)].reshape(-1, 4)
+            conn = np.asarray(block.conn[pick], dtype=np.int64)
+            corners = conn[:, np.array(table)].reshape(-1, 4)
             owner = np.repeat(np.arange(len(pick)), len(table))
             # the relaxation keeps only some of an element's corners (a free node, usable at
             # rest, not pinned): find each kept one's row among the corners around its nodes
@@ -334,7 +340,7 @@ class LockedCorners:
             where = {tuple(int(v) for v in tets[r]): int(r) for r in near}
             found = np.array([where.get(tuple(int(v) for v in c), -1) for c in corners.tolist()])
             kept = found >= 0
-            self._groups.append((etype, conn[pick], found[kept], owner[kept]))
+            self._groups.append((etype, conn, found[kept], owner[kept]))
             self.elements += len(pick)
 
     def rows(self, x: NDArray[np.float64], is_free: NDArray[np.bool_]) -> NDArray[np.int64]:
