@@ -18,7 +18,7 @@ from kneegui.topology import CORNER_TRIPLES
 
 
 def could_be_valid(
-    posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str
+    posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str, tolerance: float = 0.0
 ) -> NDArray[np.bool_]:
     """Whether elements with some nodes fixed at ``posed`` (L, k, 3) could still be valid
     wherever their ``free`` (L, k) nodes go: False only with a proof that they cannot.
@@ -33,6 +33,13 @@ def could_be_valid(
     lemma; the sum is the same for every ``x_0``). Corners with two free nodes are left out,
     so a False is a proof and a True only means no proof was found. Fully fixed elements get
     the plain corner test.
+
+    ``tolerance`` > 0 asks each proof to hold by that margin, relative to the element's largest
+    corner determinant (a corner determinant at most ``-tolerance`` times it; every ``l_c`` at
+    least ``tolerance`` times the largest and ``sum l_c d_c`` at most ``-tolerance`` times
+    the largest determinant times ``sum l_c``): a decision that rounding cannot flip (a corner
+    flat in the deck, moved rigidly, has a determinant of either sign at the last bits). It
+    proves less, never more.
     """
     table = np.array(CORNER_TRIPLES[etype])
     if (table < 0).any():  # a shell's corners are not volumes: no proof
@@ -45,7 +52,8 @@ def could_be_valid(
     det = np.einsum("lci,lci->lc", e1, grads[:, :, 0])
     grads = np.concatenate([-grads.sum(axis=2, keepdims=True), grads], axis=2)
     n_free = free[:, table].sum(axis=-1)  # (L, C)
-    ok = ~((n_free == 0) & (det <= 0.0)).any(axis=1)
+    margin = tolerance * np.abs(det).max(axis=1)  # (L,)
+    ok = ~((n_free == 0) & (det <= -margin[:, None])).any(axis=1)
     for node in range(posed.shape[1]):
         where = np.argwhere(table == node)  # (corner, slot) pairs holding the node
         if len(where) != 4:
@@ -59,7 +67,7 @@ def could_be_valid(
         independent = sv[:, 2] > 1e-9 * sv[:, 0]
         lam = u[:, :, 3]  # spans the null space of g^T when the normals are independent
         lam = lam * np.where(lam.sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
-        proof = independent & (lam >= 0.0).all(axis=1)
-        proof &= np.einsum("uc,uc->u", lam, det[use][:, cs]) <= 0.0
+        proof = independent & (lam >= tolerance * lam.max(axis=1, keepdims=True)).all(axis=1)
+        proof &= np.einsum("uc,uc->u", lam, det[use][:, cs]) <= -margin[use] * lam.sum(axis=1)
         ok[np.flatnonzero(use)[proof]] = False
     return ok

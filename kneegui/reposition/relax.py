@@ -289,6 +289,12 @@ def edge_adjacency(
 TOUCHING_MASK_SHARE = 16
 
 
+#: The margin :class:`LockedCorners` asks of the proof, relative to an element's largest corner
+#: determinant (:func:`~kneegui.quality.feasibility.could_be_valid`): which corners the energy
+#: leaves out must not turn on the last bits of a determinant.
+LOCKED_PROOF_TOLERANCE = 1e-6
+
+
 class LockedCorners:
     """The corners (rows of a relaxation's ``tets``) of the elements whose fixed nodes lie on
     two rigid segments or more while some of their nodes are free: tissue welded to femur and
@@ -348,7 +354,7 @@ class LockedCorners:
         make valid with their other nodes at ``x``."""
         out = [np.zeros(0, dtype=np.int64)]
         for etype, conn, rows, owner in self._groups:
-            locked = ~could_be_valid(x[conn], is_free[conn], etype)
+            locked = ~could_be_valid(x[conn], is_free[conn], etype, LOCKED_PROOF_TOLERANCE)
             out.append(rows[locked[owner]])
         return sorted_unique(np.concatenate(out))
 

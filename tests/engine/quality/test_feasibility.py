@@ -85,3 +85,26 @@ def test_a_fixed_corner_inverted_by_the_bones_is_proof_enough():
     flat[4:, 2] = -0.2  # the top face pushed below the bottom one
     assert not could_be_valid(flat[None], free, "hex8")[0]
     assert could_be_valid(CUBE[None], free, "hex8")[0]
+
+
+def test_a_margin_proves_less_never_more():
+    rng = np.random.default_rng(7)
+    hexes = CUBE[None] + rng.normal(scale=0.7, size=(5000, 8, 3))
+    free = np.zeros((5000, 8), dtype=bool)
+    free[:, 6] = True
+    exact = ~could_be_valid(hexes, free, "hex8")
+    margin = ~could_be_valid(hexes, free, "hex8", 1e-6)
+    assert not (margin & ~exact).any()
+    assert margin.sum() >= 0.95 * exact.sum() > 100
+
+
+@pytest.mark.parametrize("lift", [-1e-13, 0.0, 1e-13])
+def test_a_corner_flat_to_rounding_is_no_proof_with_a_margin(lift):
+    """Node 4 on node 0 (a corner flat in the deck, moved rigidly: its determinant is zero to
+    the last bits, of either sign): the exact test follows the sign, the margin does not."""
+    hexes = CUBE.copy()[None]
+    hexes[0, 4] = [0.0, 0.0, lift]
+    free = np.zeros((1, 8), dtype=bool)
+    free[0, 6] = True
+    assert could_be_valid(hexes, free, "hex8", 1e-6)[0]
+    assert could_be_valid(hexes, free, "hex8")[0] == (lift > 0.0)
