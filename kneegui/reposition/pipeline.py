@@ -222,17 +222,27 @@ def name_worst_elements(
     return out
 
 
-def locked_inverted_warning(inverted: dict[str, Any], preflight: Preflight) -> list[str]:
+def locked_inverted_warning(
+    inverted: dict[str, Any], preflight: Preflight, locked_corners: int = 0
+) -> list[str]:
     """The warning for locked elements a pose inverts: not the repositioner's failure (no stage
-    may move their nodes), named with the flexion range the pre-flight check found valid."""
+    may move their nodes), named with the flexion range the pre-flight check found valid, and
+    the corners of such elements the relaxation left out of its energy (``locked_corners``,
+    :class:`~kneegui.reposition.relax.LockedCorners`)."""
     if not inverted["locked"]:
         return []
     lo, hi = preflight.valid_range_deg()
+    left_out = (
+        f"; the relaxation left {locked_corners} corner(s) of those with free nodes out of its "
+        "energy (their free nodes cannot save them at this pose)"
+        if locked_corners
+        else ""
+    )
     return [
         f"{inverted['locked']} locked element(s) inverted (nodes tied to bones the kinematics "
         f"move apart, and no free node that could save them; ids "
         f"{_id_list(inverted['locked_ids'])}); the pre-flight check finds every locked "
-        f"element valid only from {lo:.1f} to {hi:.1f} deg"
+        f"element valid only from {lo:.1f} to {hi:.1f} deg{left_out}"
     ]
 
 
@@ -349,7 +359,8 @@ def pose_model(
     in_bones = repositioner.tissue_in_bones(final.coords, result.bone_pose)
     timings["tissue_in_bones"] = time.perf_counter() - t
     measuring("writing the report")
-    warnings = locked_inverted_warning(inverted, preflight) + pose_warnings(
+    locked_corners = 0 if relaxation is None else relaxation.locked_corners
+    warnings = locked_inverted_warning(inverted, preflight, locked_corners) + pose_warnings(
         overlaps, in_bones, repositioner.length_scale
     )
     report = {

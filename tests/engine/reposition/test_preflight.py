@@ -11,7 +11,7 @@ from kneegui.kinematics.posing import BonePose
 from kneegui.model import ElementBlock, Model
 from kneegui.quality import compute_quality, jsonable
 from kneegui.reposition import NodeGroups, Repositioner, RepositionOptions
-from kneegui.reposition.pipeline import pose_model
+from kneegui.reposition.pipeline import locked_inverted_warning, pose_model
 from kneegui.reposition.preflight import preflight_of, run_preflight
 from kneegui.setup import load_setup
 
@@ -279,6 +279,10 @@ def test_pose_report_counts_locked_and_movable_apart(welded):
     warning = next(w for w in report["warnings"] if "locked element(s) inverted" in w)
     assert str(inv["locked_ids"][0]) in warning
     assert f"{pre.valid_range_deg()[1]:.1f} deg" in warning
+    # no relaxation here: no corner left out, and the warning says nothing of it
+    assert report["relaxation"] is None and "out of its energy" not in warning
+    (told,) = locked_inverted_warning(inv, pre, 12)
+    assert told.startswith(warning) and "left 12 corner(s)" in told
     expected = pre.to_dict()
     del expected["coincident_pairs"]["node_ids"]
     assert report["preflight"] == jsonable(expected)
