@@ -324,7 +324,7 @@ class LockedCorners:
             if table is None or etype not in SOLID_TYPES or len(block.conn) == 0:
                 continue
             picks = []
-            # in chunks of corners: a whole-body model has millions of elements, few of them
+            # CORNER_CHUNK elements at a time: a whole-body model has millions, few of them
             # welded to two bones
             for start in range(0, len(block.conn), CORNER_CHUNK):
                 part = np.asarray(block.conn[start : start + CORNER_CHUNK], dtype=np.int64)
