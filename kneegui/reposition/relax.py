@@ -328,12 +328,8 @@ class LockedCorners:
             # welded to two bones
             for start in range(0, len(block.conn), CORNER_CHUNK):
                 part = np.asarray(block.conn[start : start + CORNER_CHUNK], dtype=np.int64)
-                free = is_free[part]
-                seg = np.where(free, -1, segment_of[part])
-                on = seg >= 0
-                lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
-                hi = np.where(on, seg, -1).max(axis=1)
-                picks.append(start + np.flatnonzero(free.any(axis=1) & (lo != hi) & (hi >= 0)))
+                welded = is_free[part].any(axis=1) & _on_two_segments(part, is_free, segment_of)
+                picks.append(start + np.flatnonzero(welded))
             pick = np.concatenate(picks)
             if not len(pick):
                 continue
@@ -402,21 +398,28 @@ def _pinned_corners(
     """Corners with at most one free node whose other real nodes lie on two rigid segments or
     more (virtual nodes count as free); a chunk of :data:`CORNER_CHUNK` corners at a time,
     ``cancel`` asked before each (a whole-body model's region: millions of corners)."""
-    n = len(segment_of)
     out = np.zeros(len(tets), dtype=bool)
     for start in range(0, len(tets), CORNER_CHUNK):
         raise_if_cancelled(cancel, "relaxation set-up cancelled")
         part = tets[start : start + CORNER_CHUNK]
-        real = part < n
-        seg = np.where(real, segment_of[np.minimum(part, n - 1)], -1)
-        seg = np.where(is_free[part], -1, seg)
-        on = seg >= 0
-        lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
-        hi = np.where(on, seg, -1).max(axis=1)
-        out[start : start + len(part)] = (
-            (is_free[part].sum(axis=1) <= 1) & on.any(axis=1) & (lo != hi)
+        out[start : start + len(part)] = (is_free[part].sum(axis=1) <= 1) & _on_two_segments(
+            part, is_free, segment_of
         )
     return out
+
+
+def _on_two_segments(
+    part: NDArray[np.int64], is_free: NDArray[np.bool_], segment_of: NDArray[np.int64]
+) -> NDArray[np.bool_]:
+    """Rows of ``part`` (corners or elements) whose fixed real nodes lie on two rigid segments
+    or more (free and virtual nodes lie on none)."""
+    n = len(segment_of)
+    seg = np.where(part < n, segment_of[np.minimum(part, n - 1)], -1)
+    seg = np.where(is_free[part], -1, seg)
+    on = seg >= 0
+    lo = np.where(on, seg, np.iinfo(np.int64).max).min(axis=1)
+    hi = np.where(on, seg, -1).max(axis=1)
+    return (hi >= 0) & (lo != hi)
 
 
 def _free_midside_nodes(
