@@ -96,7 +96,10 @@ def _update(q, a, x, scale, v, want_dot):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _dot_compiled(a, b):  # pragma: no cover - compiled
+def dot_fixed_order(a, b):  # pragma: no cover - compiled
+    """``a . b`` of 1-D arrays, summed in an order fixed by the length alone (:data:`CHUNK`),
+    on numba's pool for long vectors: the caller holds
+    :data:`~kneegui.meshopt.parallel.PARALLEL_KERNEL_LOCK` (:func:`_dot` takes it)."""
     return _update(a, 0.0, a, 1.0, b, True)
 
 
@@ -111,7 +114,7 @@ def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
     compiler may not reorder it).
     """
     with PARALLEL_KERNEL_LOCK:
-        return float(_dot_compiled(a, b))
+        return float(dot_fixed_order(a, b))
 
 
 @njit(cache=True, nogil=True)
@@ -139,7 +142,7 @@ def _two_loop(g, s_mem, y_mem, rho, order):  # pragma: no cover - compiled
         a = -alpha[k]
         previous = i
     newest = order[count - 1]
-    gamma = _dot_compiled(y_mem[newest], s_mem[newest]) / _dot_compiled(
+    gamma = dot_fixed_order(y_mem[newest], s_mem[newest]) / dot_fixed_order(
         y_mem[newest], y_mem[newest]
     )
     # q = (q - alpha[0] * y[0]) * gamma, then the second loop

@@ -38,6 +38,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from kneegui.errors import raise_if_cancelled
+from kneegui.meshopt.lbfgs import dot_fixed_order
 from kneegui.meshopt.parallel import PARALLEL_KERNEL_LOCK
 from kneegui.model import ElementBlock
 from kneegui.topology import sorted_unique
@@ -53,9 +54,6 @@ TET_SPLITS: dict[str, tuple[tuple[int, int, int, int], ...]] = {
 }
 _SLOTS = 8  # corner nodes of the largest solid
 _TETS = 6  # tetrahedra of the largest split
-#: Rows per chunk of the compiled passes; the chunking (and so every sum's order) depends on
-#: the problem's size alone.
-_CHUNK = 4096
 _CANCEL_EVERY = 25
 
 
@@ -233,12 +231,13 @@ def _pcg(
     """Jacobi-preconditioned CG from zero; every dot product a compiled fixed-chunk sum."""
     x = np.zeros_like(rhs)
     r = rhs.copy()
-    target = tolerance * np.sqrt(_dot(rhs, rhs))
-    if target == 0.0:
-        return x, 0, True
     z = inv_diag * r
     p = z.copy()
-    rz = _dot(r, z)
+    with PARALLEL_KERNEL_LOCK:  # the compiled kernels run on numba's pool, one caller at a time
+        target = tolerance * np.sqrt(_dot(rhs, rhs))
+        rz = _dot(r, z)
+    if target == 0.0:
+        return x, 0, True
     for k in range(max_iterations):
         if k % _CANCEL_EVERY == 0:
             raise_if_cancelled(cancel, "cancelled while restoring the tissue's volume")
@@ -246,10 +245,10 @@ def _pcg(
             ap = times(p)
             alpha = rz / _dot(p, ap)
             rr = _axpy_pair(x, r, p, ap, alpha)
-        if np.sqrt(rr) <= target:
-            return x, k + 1, True
-        z = inv_diag * r
-        rz_new = _dot(r, z)
+            if np.sqrt(rr) <= target:
+                return x, k + 1, True
+            z = inv_diag * r
+            rz_new = _dot(r, z)
         p *= rz_new / rz
         p += z
         rz = rz_new
@@ -363,30 +362,10 @@ def _add_laplacian(out, v, alpha, degree, nb_ptr, nb_idx):  # pragma: no cover -
             out[i, j] += alpha * acc
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _chunk_dots(a, b):  # pragma: no cover - compiled
-    n = a.shape[0]
-    chunks = (n + _CHUNK - 1) // _CHUNK
-    part = np.zeros(chunks)
-    for c in prange(chunks):
-        s = 0.0
-        for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-            s += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
-        part[c] = s
-    return part
-
-
-def _in_order(parts: NDArray[np.float64]) -> float:
-    """The chunks' partial sums added in chunk order: the same bits for any thread count."""
-    total = 0.0
-    for value in parts:
-        total += float(value)
-    return total
-
-
 def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
-    """``sum(a * b)`` over (n, 3) arrays, chunk by chunk in order."""
-    return _in_order(_chunk_dots(a, b))
+    """``sum(a * b)`` over (n, 3) arrays in an order fixed by the length alone (the L-BFGS's
+    compiled dot; the caller holds :data:`PARALLEL_KERNEL_LOCK`)."""
+    return float(dot_fixed_order(a.reshape(-1), b.reshape(-1)))
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -952,10 +952,12 @@ class Repositioner:
         return coords, replace(report, volume_correction=corrected)
 
     def _build_volume_correction(self, relaxation: ElasticRelaxation) -> VolumeCorrection:
-        """The volume-restoring step over the soft solids, moving the relaxable nodes."""
-        soft = set(self.setup.parts_of(*SOFT_ROLES))
+        """The volume-restoring step over the soft solids with a relaxable node, moving those
+        nodes (the others would only pin it: a whole-body model's far tissue is left out)."""
+        soft = list(self.setup.parts_of(*SOFT_ROLES))
+        free = relaxation.is_free
         rows = {
-            etype: np.flatnonzero(np.isin(block.part_ids, list(soft)))
+            etype: np.flatnonzero(np.isin(block.part_ids, soft) & free[block.conn].any(axis=1))
             for etype, block in self.model.blocks.items()
         }
         return VolumeCorrection(
