@@ -673,13 +673,28 @@ def scatter_free(work, free, v, h):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def anchor_and_constraints(  # pragma: no cover - compiled
-    v, h, start, free, grad, anchor, c_rows, c_normals, c_offsets, stiffness, out
+    v,
+    h,
+    start,
+    free,
+    grad,
+    anchor,
+    c_rows,
+    c_weights,
+    c_partners,
+    c_partner_weights,
+    c_normals,
+    c_offsets,
+    stiffness,
+    out,
 ):
     """The optimiser's objective beyond the penalties, over the free nodes' scaled variables
-    ``v`` (``x = v h``): ``anchor * |(x - start) / h|^2`` plus ``stiffness * min(0, n . x -
-    offset)^2`` per constraint row; writes the whole gradient with respect to ``v`` (the
-    penalties' ``grad`` at the free nodes included) into ``out``, returns the added value.
-    Sums run in index order."""
+    ``v`` (``x = v h``): ``anchor * |(x - start) / h|^2`` plus ``stiffness * min(0, gap)^2``
+    per constraint row, ``gap = n . (w x_r + w' x_p) - offset`` for its free row ``r`` with
+    weight ``w`` and, where ``c_partners`` is not -1, a second free row ``p`` with weight
+    ``w'`` (a plane on a point between two nodes: an edge's middle); writes the whole gradient
+    with respect to ``v`` (the penalties' ``grad`` at the free nodes included) into ``out``,
+    returns the added value. Sums run in index order."""
     total = 0.0
     for r in range(free.shape[0]):
         hr = h[r, 0]
@@ -689,14 +704,21 @@ def anchor_and_constraints(  # pragma: no cover - compiled
             out[3 * r + j] = grad[free[r], j] + 2.0 * anchor * dx / hr
     for k in range(c_rows.shape[0]):
         r = c_rows[k]
-        hr = h[r, 0]
+        p = c_partners[k]
+        w = c_weights[k]
         gap = -c_offsets[k]
         for j in range(3):
-            gap += c_normals[k, j] * v[3 * r + j] * hr
+            gap += c_normals[k, j] * v[3 * r + j] * h[r, 0] * w
+        if p >= 0:
+            for j in range(3):
+                gap += c_normals[k, j] * v[3 * p + j] * h[p, 0] * c_partner_weights[k]
         if gap < 0.0:
             total += stiffness * gap * gap
             for j in range(3):
-                out[3 * r + j] += 2.0 * stiffness * gap * c_normals[k, j]
+                out[3 * r + j] += 2.0 * stiffness * gap * w * c_normals[k, j]
+            if p >= 0:
+                for j in range(3):
+                    out[3 * p + j] += 2.0 * stiffness * gap * c_partner_weights[k] * c_normals[k, j]
     for r in range(free.shape[0]):
         for j in range(3):
             out[3 * r + j] *= h[r, 0]

@@ -71,10 +71,41 @@ from kneegui.topology import CORNER_NODES, CORNER_TRIPLES, ELEMENT_FACES, sorted
 
 ProgressCallback = Callable[[float, str], None]
 #: ``constraints(coords) -> (nodes, normals, offsets)``: node ``nodes[k]`` should satisfy
-#: ``normals[k] . x >= offsets[k]`` (global node indices, unit normals).
-ConstraintCallback = Callable[
-    [NDArray[np.float64]], tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]
-]
+#: ``normals[k] . x >= offsets[k]`` (global node indices, unit normals). A fourth array,
+#: ``partners``, may follow: where ``partners[k]`` is not -1 the plane holds the middle of the
+#: two nodes, ``normals[k] . (x[nodes[k]] + x[partners[k]]) / 2 >= offsets[k]`` (an edge's
+#: mid-side node carried between its corners: either corner may give way).
+ConstraintCallback = Callable[[NDArray[np.float64]], tuple[NDArray, ...]]
+
+
+def with_partners(
+    constraints: tuple[NDArray, ...],
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """``(nodes, normals, offsets, partners)`` of a constraint tuple of three or four arrays
+    (:data:`ConstraintCallback`; -1 partners for three)."""
+    nodes = np.asarray(constraints[0], dtype=np.int64)
+    normals = np.asarray(constraints[1], dtype=np.float64).reshape(-1, 3)
+    offsets = np.asarray(constraints[2], dtype=np.float64)
+    partners = (
+        np.asarray(constraints[3], dtype=np.int64)
+        if len(constraints) > 3
+        else np.full(len(nodes), -1, dtype=np.int64)
+    )
+    return nodes, normals, offsets, partners
+
+
+def constraint_gaps(
+    constraints: tuple[NDArray, ...], x: NDArray[np.float64]
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Each constraint's nodes (its partner's too, as a second row) and how far the point it
+    holds is on the right side of its plane at ``x`` (< 0: past it)."""
+    nodes, normals, offsets, partners = with_partners(constraints)
+    paired = partners >= 0
+    point = x[nodes].copy()
+    point[paired] = 0.5 * (point[paired] + x[partners[paired]])
+    gap = np.einsum("ij,ij->i", normals, point) - offsets
+    return np.concatenate([nodes, partners[paired]]), np.concatenate([gap, gap[paired]])
+
 
 #: Solid types with corner determinants (a tet has one corner: only its sign counts; a 10-node
 #: tet is measured by its corner tetrahedron, its mid-side nodes are the caller's).
@@ -1155,6 +1186,9 @@ class _Objective:
         self.start = (x[pr.free] if start is None else start).copy()
         self.grad = np.zeros_like(x)
         self.c_rows = np.zeros(0, dtype=np.int64)
+        self.c_weights = np.zeros(0)
+        self.c_partners = np.zeros(0, dtype=np.int64)
+        self.c_partner_weights = np.zeros(0)
         self.c_normals, self.c_offsets = np.zeros((0, 3)), np.zeros(0)
         self.penalty = penalty or _penalty_of(pr)
         #: ``(log J floor, log collapse floor)``: a point where a solid falls below either is
@@ -1166,11 +1200,23 @@ class _Objective:
         rows: NDArray[np.int64],
         normals: NDArray[np.float64],
         offsets: NDArray[np.float64],
+        weights: NDArray[np.float64] | None = None,
+        partners: NDArray[np.int64] | None = None,
+        partner_weights: NDArray[np.float64] | None = None,
     ) -> None:
-        """Keep these free rows on the side ``normal . x >= offset``."""
+        """Keep these free rows on the side ``normal . (w x_row + w' x_partner) >= offset``
+        (``w`` 1 and no partner by default)."""
         self.c_rows = np.ascontiguousarray(rows, dtype=np.int64)
+        k = len(self.c_rows)
         self.c_normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
         self.c_offsets = np.ascontiguousarray(offsets, dtype=np.float64)
+        self.c_weights = np.ascontiguousarray(np.ones(k) if weights is None else weights)
+        self.c_partners = np.ascontiguousarray(
+            np.full(k, -1, dtype=np.int64) if partners is None else partners, dtype=np.int64
+        )
+        self.c_partner_weights = np.ascontiguousarray(
+            np.zeros(k) if partner_weights is None else partner_weights, dtype=np.float64
+        )
 
     def __call__(self, v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         pr, h = self.pr, self.h
@@ -1191,6 +1237,9 @@ class _Objective:
             self.grad,
             self.anchor,
             self.c_rows,
+            self.c_weights,
+            self.c_partners,
+            self.c_partner_weights,
             self.c_normals,
             self.c_offsets,
             self.stiffness,
@@ -1250,16 +1299,44 @@ class _Stage:
         self,
         x: NDArray[np.float64],
         stiffness: float,
-        constraints: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]],
+        constraints: tuple[NDArray, ...],
+        coords: NDArray[np.float64] | None = None,
     ) -> _Objective:
-        """The objective at local coordinates ``x`` against global ``constraints``."""
+        """The objective at local coordinates ``x`` against global ``constraints``
+        (:data:`ConstraintCallback`'s arrays). A plane on the middle of two nodes of which
+        only one is free here holds that one, the other's share (at the global ``coords``,
+        where it stays) moved into the offset; planes without a free node are left out."""
         objective = _Objective(
             self.pr, x, self.h, self.options.anchor, stiffness, self.start, self.penalty
         )
-        nodes, normals, offsets = constraints
+        nodes, normals, offsets, partners = with_partners(constraints)
         rows = self.row_of[nodes]
+        paired = partners >= 0
+        if not paired.any():
+            keep = rows >= 0
+            objective.set_constraints(rows[keep], normals[keep], offsets[keep])
+            return objective
+        if coords is None:
+            raise ValueError("planes on two nodes need the global coordinates")
+        other = np.where(paired, self.row_of[np.where(paired, partners, 0)], -1)
+        # the free one first
+        swap = (rows < 0) & (other >= 0)
+        rows, other = np.where(swap, other, rows), np.where(swap, rows, other)
+        fixed_node = np.where(swap, nodes, partners)
         keep = rows >= 0
-        objective.set_constraints(rows[keep], normals[keep], offsets[keep])
+        weights = np.where(paired, 0.5, 1.0)
+        partner_weights = np.where(paired & (other >= 0), 0.5, 0.0)
+        offsets = offsets.copy()
+        held = paired & (other < 0) & keep
+        offsets[held] -= 0.5 * np.einsum("ij,ij->i", normals[held], coords[fixed_node[held]])
+        objective.set_constraints(
+            rows[keep],
+            normals[keep],
+            offsets[keep],
+            weights[keep],
+            np.where(partner_weights > 0, other, -1)[keep],
+            partner_weights[keep],
+        )
         return objective
 
 
@@ -1351,13 +1428,11 @@ def optimise_quality(
     def refresh_constraints() -> None:
         nonlocal fresh
         if constraints is not None:
-            nodes, normals, offsets = constraints(x_all)
-            fresh = (np.asarray(nodes, dtype=np.int64), np.asarray(normals), np.asarray(offsets))
+            fresh = with_partners(constraints(x_all))
 
     def gaps() -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """The constrained nodes and how far each is on the right side of its plane."""
-        nodes, normals, offsets = fresh
-        return nodes, np.einsum("ij,ij->i", normals, x_all[nodes]) - offsets
+        return constraint_gaps(fresh, x_all)
 
     def narrowed(current: _Stage, settling: bool = False) -> _Stage:
         """The stage over the nodes still around a shortfall or a violated constraint (the
@@ -1392,7 +1467,7 @@ def optimise_quality(
         nonlocal iterations, evaluations, rounds
         np.copyto(current.pr.element_weight, boost[current.pr.element_index])
         x = x_all[current.pr.nodes]
-        objective = current.objective(x, stiffness, fresh)
+        objective = current.objective(x, stiffness, fresh, x_all)
         objective.floors = floors
         v0 = (x[current.pr.free] / current.h).ravel()
         check()

@@ -51,12 +51,14 @@ from kneegui.meshopt.lbfgs import minimize_lbfgs, round_monitor
 from kneegui.meshopt.quality_optimiser import (
     REGION_CHUNK,
     SOLID_CORNER_TYPES,
+    ConstraintCallback,
     QualityAims,
     QualityOptimisationReport,
     QualityOptions,
     gate_shortfall_nodes,
     optimise_quality,
     shortfall_region,
+    with_partners,
 )
 from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
 from kneegui.model import ElementBlock
@@ -757,8 +759,10 @@ class ElasticRelaxation:
         nodes: NDArray[np.int64],
         transforms: Mapping[str, RigidTransform],
         cancel: Callable[[], bool] | None = None,
+        chords: bool = True,
     ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        """Constraints ``n . x_node >= offset`` for the given nodes near a bone, and each
+        """Constraints ``n . x_node >= offset`` for the given nodes near a bone (with
+        ``chords``, those of :meth:`_chord_planes` too), and each
         node's smallest margin ``depth - allowed depth`` over the bones (< 0: too deep; a lower
         bound where it is more than the contact band: those nodes are not measured again,
         :class:`~kneegui.reposition.contact.DistanceMemo`). ``cancel`` is asked before each
@@ -801,7 +805,7 @@ class ElasticRelaxation:
             out_nodes.append(np.flatnonzero(near))
             normals.append(n_world)
             offsets.append(np.einsum("ij,ij->i", n_world, p_world) + floor[near])
-            if len(self._midside):
+            if chords and len(self._midside):
                 rows, n_chord, off_chord = self._chord_planes(x, nodes, name, tr, band)
                 out_nodes.append(rows)
                 normals.append(n_chord)
@@ -834,25 +838,13 @@ class ElasticRelaxation:
         of such an edge among ``nodes`` gets the plane at its current position moved out by the
         depth the edge's middle must gain (each may give up the margin the middle has, when it
         has one): if both keep theirs, so does the middle. The planes are refitted every round,
-        like the corners' own."""
+        like the corners' own. The untangling's form; the quality stage holds the middle
+        itself (:meth:`_chord_middle_planes`)."""
+        found = self._chords_in_bone(x, nodes, name, tr, band)
+        if found is None:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+        edges, slot, listed, n, need = found
         mid = self._midside
-        slot = np.searchsorted(nodes, mid.ends)
-        slot = np.minimum(slot, len(nodes) - 1)
-        listed = nodes[slot] == mid.ends  # (M, 2)
-        edges = np.flatnonzero(listed.any(axis=1))
-        empty = np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
-        if len(edges) == 0:
-            return empty
-        local = tr.inverse().apply(mid.carried(x, edges))
-        boxed = np.flatnonzero(self.bones[name].in_box(local))
-        depth, _, normal, _ = self.bones[name].query(local[boxed])
-        near = depth < band
-        if not near.any():
-            return empty
-        edges, boxed = edges[boxed[near]], boxed[near]
-        floor = np.minimum(mid.rest_depth(name, self.bones[name])[edges], 0.0)
-        need = floor - depth[near]  # > 0: the middle must move out this far
-        n = tr.apply_vector(normal[near])
         rows, normals, offsets = [], [], []
         for k in range(2):
             keep = listed[edges, k]
@@ -861,6 +853,71 @@ class ElasticRelaxation:
             normals.append(n[keep])
             offsets.append(np.einsum("ij,ij->i", n[keep], x[corner]) + need[keep])
         return np.concatenate(rows), np.concatenate(normals), np.concatenate(offsets)
+
+    def _chord_middle_planes(
+        self,
+        x: NDArray[np.float64],
+        nodes: NDArray[np.int64],
+        transforms: Mapping[str, RigidTransform],
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """The quality stage's form of :meth:`_chord_planes`: one plane on the middle of each
+        such edge's two corners (global ``nodes, normals, offsets, partners``,
+        :data:`~kneegui.meshopt.quality_optimiser.ConstraintCallback`), moved out by the depth
+        the middle must gain, so that either corner may give way. Asking each corner for the
+        whole depth crushed knee-flesh tets squeezed behind the joint (the coarse 10-node demo
+        at 90 deg: three corners of a tet moved about 20 mm, collapse 0.061 against the initial
+        worst 0.108)."""
+        mid = self._midside
+        out: list[tuple] = []
+        for name in self.bones:
+            tr = transforms.get(name)
+            if tr is None:
+                continue
+            found = self._chords_in_bone(x, nodes, name, tr, self.options.contact_band)
+            if found is None:
+                continue
+            edges, _, _, n, need = found
+            a, b = mid.ends[edges, 0], mid.ends[edges, 1]
+            middle = 0.5 * (x[a] + x[b])
+            out.append((a, n, np.einsum("ij,ij->i", n, middle) + need, b))
+        if not out:
+            return (
+                np.zeros(0, dtype=np.int64),
+                np.zeros((0, 3)),
+                np.zeros(0),
+                np.zeros(0, dtype=np.int64),
+            )
+        return tuple(np.concatenate(p) for p in zip(*out, strict=True))
+
+    def _chords_in_bone(
+        self,
+        x: NDArray[np.float64],
+        nodes: NDArray[np.int64],
+        name: str,
+        tr: RigidTransform,
+        band: float,
+    ) -> tuple | None:
+        """The 10-node tet edges with a corner among ``nodes`` whose carried middle lies
+        within ``band`` of bone ``name``: ``(edges, slot, listed, normals, need)`` (the
+        corners' rows in ``nodes`` and whether each is there, the surface normals in world
+        axes, how far out each middle must move); None without any."""
+        mid = self._midside
+        slot = np.searchsorted(nodes, mid.ends)
+        slot = np.minimum(slot, len(nodes) - 1)
+        listed = nodes[slot] == mid.ends  # (M, 2)
+        edges = np.flatnonzero(listed.any(axis=1))
+        if len(edges) == 0:
+            return None
+        local = tr.inverse().apply(mid.carried(x, edges))
+        boxed = np.flatnonzero(self.bones[name].in_box(local))
+        depth, _, normal, _ = self.bones[name].query(local[boxed])
+        near = depth < band
+        if not near.any():
+            return None
+        edges, boxed = edges[boxed[near]], boxed[near]
+        floor = np.minimum(mid.rest_depth(name, self.bones[name])[edges], 0.0)
+        need = floor - depth[near]  # > 0: the middle must move out this far
+        return edges, slot, listed, tr.apply_vector(normal[near]), need
 
     # ------------------------------------------------------------------ solve
     def energy(
@@ -1478,17 +1535,19 @@ class ElasticRelaxation:
         if not (self.bones and transforms is not None):
             contact = contact[:0]
 
-        def constraints(coords: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+        def constraints(coords: NDArray[np.float64]) -> tuple[NDArray, ...]:
             parts = []
             if len(contact):
                 which, normals, offsets, _ = self._contact_planes(
-                    coords, contact, transforms, cancel
+                    coords, contact, transforms, cancel, chords=False
                 )
-                parts.append((contact[which], normals, offsets))
+                parts.append(with_partners((contact[which], normals, offsets)))
+                if len(self._midside):
+                    parts.append(self._chord_middle_planes(coords, contact, transforms))
             if order is not None:
-                parts.append(order.constraints(coords))
+                parts.append(with_partners(order.constraints(coords)))
             if not parts:
-                return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+                return with_partners((np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)))
             return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
 
         out, report = optimise_quality(
@@ -1566,7 +1625,7 @@ class ElasticRelaxation:
         x: NDArray[np.float64],
         transforms: Mapping[str, RigidTransform],
         contact: NDArray[np.int64],
-        constraints: Callable[[NDArray[np.float64]], tuple[NDArray, NDArray, NDArray]],
+        constraints: ConstraintCallback,
         options: QualityOptions,
         report: QualityOptimisationReport,
         cancel: Callable[[], bool] | None,
@@ -1595,10 +1654,10 @@ class ElasticRelaxation:
         in_free = np.zeros(self.n_nodes, dtype=bool)
         in_free[free] = True
 
-        def around(coords: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
-            nodes, normals, offsets = constraints(coords)
-            keep = in_free[nodes]
-            return nodes[keep], normals[keep], offsets[keep]
+        def around(coords: NDArray[np.float64]) -> tuple[NDArray, ...]:
+            nodes, normals, offsets, partners = with_partners(constraints(coords))
+            keep = in_free[nodes] | ((partners >= 0) & in_free[np.maximum(partners, 0)])
+            return nodes[keep], normals[keep], offsets[keep], partners[keep]
 
         region_seconds = time.perf_counter() - t
         # no solid below the worst the region's optimisation left (nor below its own worst

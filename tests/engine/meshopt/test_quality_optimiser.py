@@ -11,7 +11,12 @@ import pytest
 
 from kneegui.errors import Cancelled
 from kneegui.meshopt import quality_optimiser
-from kneegui.meshopt.quality_kernel import corner_ratio_penalty, face_aims, face_shape_penalty
+from kneegui.meshopt.quality_kernel import (
+    anchor_and_constraints,
+    corner_ratio_penalty,
+    face_aims,
+    face_shape_penalty,
+)
 from kneegui.meshopt.quality_optimiser import (
     QualityAims,
     QualityOptions,
@@ -753,3 +758,69 @@ def test_settling_alone_reports_progress(block_model, monkeypatch):
                               options=options, progress=progress)  # fmt: skip
     assert fractions and all(0.0 <= f <= 1.0 for f in fractions)
     np.testing.assert_array_equal(out, quiet)
+
+
+def test_constraint_gradient_with_a_plane_on_two_nodes():
+    """The objective's constraint part (:func:`anchor_and_constraints`): a plane on one node
+    and a plane on the middle of two, both past their offsets, against finite differences;
+    a pair whose middle is on the right side costs nothing though one node is past."""
+    rng = np.random.default_rng(3)
+    n = 4
+    h = rng.uniform(0.5, 2.0, (n, 1))
+    v = rng.normal(0.0, 1.0, 3 * n)
+    start, free, grad = v.reshape(-1, 3) * h, np.arange(n), np.zeros((n, 3))
+    normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
+    rows, partners = np.array([0, 1]), np.array([-1, 2])
+    weights, partner_weights = np.array([1.0, 0.5]), np.array([0.0, 0.5])
+    x = v.reshape(-1, 3) * h
+    offsets = np.array([x[0, 0] + 0.3, normals[1] @ (0.5 * (x[1] + x[2])) + 0.2])
+
+    def value(w, out=None):
+        out = np.zeros(3 * n) if out is None else out
+        return anchor_and_constraints(w, h, start, free, grad, 0.0, rows, weights, partners,
+                                      partner_weights, normals, offsets, 10.0, out)  # fmt: skip
+
+    out = np.zeros(3 * n)
+    total = value(v, out)
+    assert total == pytest.approx(10.0 * (0.3**2 + 0.2**2))
+    eps = 1e-6
+    numeric = np.array(
+        [(value(v + eps * e) - value(v - eps * e)) / (2 * eps) for e in np.eye(3 * n)]
+    )
+    np.testing.assert_allclose(out, numeric, rtol=1e-6, atol=1e-8)
+    assert np.all(out[9:] == 0.0)  # node 3 has no plane
+    # node 1 one unit past the pair's plane, node 2 two units inside it: the middle holds
+    moved = x.copy()
+    moved[1] -= 1.0 * normals[1]
+    moved[2] += 2.0 * normals[1]
+    offsets[0] = -np.inf
+    assert value((moved / h).ravel()) == 0.0
+
+
+def test_a_plane_on_two_nodes_holds_their_middle(block_model):
+    """A constraint with a partner (an edge's mid-side node, carried between its corners)
+    holds the middle of the two nodes, not each of them; where the partner is not free, the
+    free node alone carries the middle out and the partner stays."""
+    model, coords = distorted_block(block_model)
+    aims = quality_aims(compute_quality(model.coords, model.blocks), model.blocks)
+    interior = np.flatnonzero(np.all(np.abs(model.coords - 2.0) < 1.99, axis=1))
+    a = interior[np.argmin(np.linalg.norm(coords[interior] - (2.0, 2.0, 2.0), axis=1))]
+    b = interior[np.argmin(np.linalg.norm(coords[interior] - (3.0, 2.0, 2.0), axis=1))]
+    fixed = np.setdiff1d(np.arange(len(coords)), interior)
+    c = fixed[np.argmin(np.linalg.norm(coords[fixed] - coords[a] - (0.0, 0.0, 1.0), axis=1))]
+    tolerance = QualityOptions().constraint_tolerance
+    normal = np.array([[0.0, 0.0, 1.0]])
+    for partner in (b, c):
+        wall = 0.5 * (coords[a, 2] + coords[partner, 2]) + 0.25
+
+        def plane(x, partner=partner, wall=wall):
+            return np.array([a]), normal, np.array([wall]), np.array([partner])
+
+        out, _ = optimise_quality(coords, model.blocks, interior, aims, constraints=plane)
+        assert 0.5 * (out[a, 2] + out[partner, 2]) >= wall - tolerance
+        assert compute_quality(out, model.blocks).n_inverted == 0
+        if partner == c:
+            np.testing.assert_array_equal(out[c], coords[c])
+            assert out[a, 2] >= coords[a, 2] + 0.5 - 2 * tolerance
+    free_out, _ = optimise_quality(coords, model.blocks, interior, aims)
+    assert 0.5 * (free_out[a, 2] + free_out[b, 2]) < 0.5 * (coords[a, 2] + coords[b, 2]) + 0.2

@@ -202,10 +202,6 @@ KNOWN_MISSES = {
     ("welded", 0.0, "quality"): "worst corner Jacobian 0.225 against the initial 0.330: the "
     "four elements below 0.330 are locked (every node tied to femur or tibia; coarse demo, "
     "5 December)",
-    ("tet10", 90.0, "quality"): "the mid-side nodes stay on their edges, but holding the edges "
-    "out of the bones leaves a corner tet's collapse at 0.061 against the initial 0.108 (aspect "
-    "27.1 against 13.5, smallest dihedral angle 3.4 against 6.9 deg; coarse 10-node tet demo, "
-    "6 December, volume aim 1/1.15 to 1.15)",
 }
 
 
