@@ -32,6 +32,10 @@ def surface_triangles(model: Model, part_ids: Iterable[int], shells: bool = True
     return np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]], tris]).astype(np.int64)
 
 
+#: The rays' direction is perturbed by this so that they do not graze edges.
+RAY_PERTURBATION = np.array([1.3e-4, -2.7e-4, 3.1e-4])
+
+
 def crossings_along_ray(
     points: NDArray[np.float64],
     triangles: NDArray[np.float64],
@@ -39,6 +43,11 @@ def crossings_along_ray(
     chunk: int = 256,
 ) -> NDArray[np.int64]:
     """How many triangles the ray ``point + t * direction`` (t > 0) crosses, per point.
+
+    The points and triangles are first binned on a grid across the ray (a ray can only cross
+    a triangle whose shadow along it covers the point), so each point is tested against the
+    triangles of its bin only: the same counts as testing every triangle, in a fraction of
+    the time on a bone surface of thousands of triangles.
 
     Parameters
     ----------
@@ -49,7 +58,49 @@ def crossings_along_ray(
         Ray direction (perturbed slightly inside so rays do not graze edges).
     """
     d = np.asarray(direction, dtype=np.float64)
-    d = d / np.linalg.norm(d) + np.array([1.3e-4, -2.7e-4, 3.1e-4])
+    d = d / np.linalg.norm(d) + RAY_PERTURBATION
+    out = np.zeros(len(points), dtype=np.int64)
+    if len(points) == 0 or len(triangles) == 0:
+        return out
+    # two axes across the ray, and each triangle's shadow's box on them (with a margin)
+    across = np.linalg.svd(d[None, :])[2][1:]
+    flat_tris = triangles @ across.T  # (T, 3, 2)
+    flat_points = points @ across.T
+    lo, hi = flat_tris.min(axis=1), flat_tris.max(axis=1)
+    margin = 1e-9 * max(float(np.abs(flat_tris).max()), 1.0)
+    lo, hi = lo - margin, hi + margin
+    size = max(float(np.median(hi - lo)), margin)
+    origin = lo.min(axis=0)
+    cells = np.maximum(np.ceil((hi.max(axis=0) - origin) / size).astype(np.int64), 1)
+    first = np.clip(((lo - origin) // size).astype(np.int64), 0, cells - 1)
+    last = np.clip(((hi - origin) // size).astype(np.int64), 0, cells - 1)
+    # each triangle listed in every cell its box covers
+    span = last - first + 1
+    count = span[:, 0] * span[:, 1]
+    tri = np.repeat(np.arange(len(triangles)), count)
+    k = np.arange(len(tri)) - np.repeat(np.cumsum(count) - count, count)
+    cx = first[tri, 0] + k // span[tri, 1]
+    cy = first[tri, 1] + k % span[tri, 1]
+    tri_cell = cx * cells[1] + cy
+    order = np.argsort(tri_cell, kind="stable")
+    tri, tri_cell = tri[order], tri_cell[order]
+    pc = np.floor((flat_points - origin) / size).astype(np.int64)
+    inside_grid = np.all((pc >= 0) & (pc < cells), axis=1)
+    point_cell = np.where(inside_grid, pc[:, 0] * cells[1] + pc[:, 1], -1)
+    bounds = np.searchsorted(tri_cell, np.arange(cells[0] * cells[1] + 1))
+    for cell in np.unique(point_cell[point_cell >= 0]):
+        which = tri[bounds[cell] : bounds[cell + 1]]
+        if len(which) == 0:
+            continue
+        rows = np.flatnonzero(point_cell == cell)
+        out[rows] = _count_crossings(points[rows], triangles[which], d, chunk)
+    return out
+
+
+def _count_crossings(
+    points: NDArray[np.float64], triangles: NDArray[np.float64], d: NDArray[np.float64], chunk: int
+) -> NDArray[np.int64]:
+    """Möller-Trumbore over every (point, triangle) pair: crossings of ``p + t d``, t > 0."""
     v0 = triangles[:, 0]
     e1 = triangles[:, 1] - v0
     e2 = triangles[:, 2] - v0
