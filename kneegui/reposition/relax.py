@@ -391,6 +391,14 @@ class NodeRows:
         return np.flatnonzero(mask)
 
 
+#: A pinned corner's plane in the untangling asks its determinant for this fraction of its rest
+#: value (:meth:`ElasticRelaxation._pinned_planes`). Coarse welded demo, movable elements left
+#: inverted at 60 / 90 deg (7 December, one run each): 8 / 27 without the planes, 7 / 28 with
+#: 0, 6 / 27 with 0.02, 5 / 26 with 0.1 and with 0.3 (tissue deeper than 0.5 mm in a bone at
+#: 90 deg: 4, 2, 3, 0 and 1 nodes).
+PINNED_MARGIN = 0.1
+
+
 def _pinned_corners(
     tets: NDArray[np.int64],
     is_free: NDArray[np.bool_],
@@ -569,9 +577,16 @@ class ElasticRelaxation:
         tets = np.asarray(tets, dtype=np.int64)
         tets = tets[is_free[tets].any(axis=1)]
         self.pinned_corners = 0
+        #: the pinned corners with one free node, none virtual: (P, 4) node indices, the free
+        #: node's column and the rest determinant (:meth:`_pinned_planes`)
+        self._pinned = (np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0))
         if segment_of is not None and len(tets):
             pinned = _pinned_corners(tets, is_free, np.asarray(segment_of, dtype=np.int64), cancel)
             self.pinned_corners = int(pinned.sum())
+            held = tets[pinned]
+            held = held[np.all(held < n, axis=1) & (is_free[held].sum(axis=1) == 1)]
+            rest_det = np.linalg.det(edge_matrices(self.rest, held)) if len(held) else np.zeros(0)
+            self._pinned = (held, np.argmax(is_free[held], axis=1), rest_det)
             tets = tets[~pinned]
         usable, self.inv_rest, det0 = _rest_corner_geometry(self.augment(rest_coords), tets, cancel)
         check()
@@ -818,6 +833,35 @@ class ElasticRelaxation:
             np.concatenate(offsets),
             nearest,
         )
+
+    def _pinned_planes(
+        self, x: NDArray[np.float64], movable: NDArray[np.bool_]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Planes (global ``nodes, normals, offsets``) that ask each pinned corner (one free
+        node, its other nodes on two bones) whose free node is ``movable`` for a positive
+        determinant: linear in that node, ``det = g . x + c``, so the plane
+        ``g . x >= PINNED_MARGIN * rest det - c`` (unit normal) is exact. The corners stay out
+        of the energy: its barrier on them pulled the tissue around them apart (when kept, 295
+        corners and 87 movable elements inverted on the welded demo at 90 deg, 4 December)."""
+        tets, column, rest_det = self._pinned
+        node = tets[np.arange(len(tets)), column] if len(tets) else np.zeros(0, dtype=np.int64)
+        keep = movable[node] & (rest_det != 0)
+        tets, column, rest_det, node = tets[keep], column[keep], rest_det[keep], node[keep]
+        if not len(tets):
+            return node, np.zeros((0, 3)), np.zeros(0)
+        p = x[tets]
+        a, b, e = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+        # oriented as at rest: the determinant's sign there is the valid one
+        sign = np.sign(rest_det)
+        det = sign * np.einsum("ij,ij->i", e, np.cross(a, b))
+        grads = np.stack([np.zeros_like(a), np.cross(b, e), np.cross(e, a), np.cross(a, b)], 1)
+        grads[:, 0] = -grads[:, 1:].sum(axis=1)
+        g = sign[:, None] * grads[np.arange(len(tets)), column]
+        size = np.linalg.norm(g, axis=1)
+        ok = size > 0
+        g, size, det, node, rest_det = g[ok], size[ok], det[ok], node[ok], np.abs(rest_det[ok])
+        offsets = (PINNED_MARGIN * rest_det - det + np.einsum("ij,ij->i", g, x[node])) / size
+        return node, g / size[:, None], offsets
 
     def _chord_planes(
         self,
@@ -1214,6 +1258,10 @@ class ElasticRelaxation:
                         o_nodes, o_normals, o_offsets = order.constraints(x)
                         keep = is_sub_free[o_nodes]
                         parts.append((o_nodes[keep], o_normals[keep], o_offsets[keep]))
+                    # the pinned corners stay out of the energy (a barrier on corners the
+                    # bones alone shape pulled the tissue around them apart); a plane on their
+                    # free node asks them positive, softly, like the bone contact
+                    parts.append(self._pinned_planes(x, is_sub_free))
                     c_global, c_normals, c_offsets = (
                         np.concatenate(p) for p in zip(*parts, strict=True)
                     )

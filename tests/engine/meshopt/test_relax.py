@@ -327,6 +327,35 @@ def test_corners_pinned_between_two_bones_are_left_out():
     assert relax.tets.tolist() == [[0, 1, 5, 4]]
 
 
+def test_a_pinned_corner_gets_a_plane_on_its_free_node():
+    """The pinned corner's determinant is linear in its free node: on its plane it is
+    PINNED_MARGIN times the rest value, beyond the plane more, before it less (inverted where
+    the bones turned its fixed nodes through it); no plane where the node may not move."""
+    rest = np.array(
+        [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [0, -1, 0]], dtype=float
+    )
+    tets = np.array([[0, 1, 2, 3], [4, 1, 2, 3], [0, 1, 5, 4]])
+    segment_of = np.array([0, 0, 1, 1, -1, 0])
+    relax = ElasticRelaxation(rest, tets, np.array([4]), segment_of=segment_of)
+    rest_det = np.linalg.det(rest[[1, 2, 3]] - rest[4])  # -2: oriented the other way round
+    posed = rest.copy()
+    posed[[2, 3]] += [1.5, 1.5, 1.5]  # bone 1 moved: the corner at node 4 inverted
+    assert np.linalg.det(posed[[1, 2, 3]] - posed[4]) * np.sign(rest_det) < 0
+    movable = np.zeros(len(rest), dtype=bool)
+    movable[4] = True
+    nodes, normals, offsets = relax._pinned_planes(posed, movable)
+    assert nodes.tolist() == [4]
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    on_plane = posed[4] + (offsets[0] - normals[0] @ posed[4]) * normals[0]
+    for step, sign in ((0.0, 0), (0.2, 1), (-0.2, -1)):
+        moved = posed.copy()
+        moved[4] = on_plane + step * normals[0]
+        det = np.linalg.det(moved[[1, 2, 3]] - moved[4]) * np.sign(rest_det)
+        expected = relax_module.PINNED_MARGIN * abs(rest_det)
+        assert np.sign(round(det - expected, 9)) == sign
+    assert len(relax._pinned_planes(posed, np.zeros(len(rest), dtype=bool))[0]) == 0
+
+
 def test_edge_adjacency_asks_cancel_between_its_two_ways():
     a, b = np.array([0, 1, 2]), np.array([1, 2, 3])
     asked = []
