@@ -1245,7 +1245,7 @@ class ElasticRelaxation:
             for rnd in range(opt.max_rounds):
                 if should_cancel():
                     raise Cancelled("relaxation cancelled")
-                if len(contact_global) or order is not None:
+                if len(contact_global) or order is not None or len(self._pinned[0]):
                     x[sub.nodes] = xl
                     parts = []
                     if len(contact_global):
