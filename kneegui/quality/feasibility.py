@@ -17,6 +17,18 @@ from numpy.typing import NDArray
 from kneegui.topology import CORNER_TRIPLES
 
 
+def corner_determinant_gradients(
+    corners: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Determinants ``(...)`` of corner tetrahedra ``(..., 4, 3)`` (the corner node first, then
+    its three neighbours) and their gradients ``(..., 4, 3)`` with respect to each of the four
+    nodes: a determinant is affine in each node, ``d + g . (x - x_0)`` in that node alone."""
+    e1, e2, e3 = (corners[..., s, :] - corners[..., 0, :] for s in (1, 2, 3))
+    grads = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=-2)
+    det = np.einsum("...i,...i->...", e1, grads[..., 0, :])
+    return det, np.concatenate([-grads.sum(axis=-2, keepdims=True), grads], axis=-2)
+
+
 def could_be_valid(
     posed: NDArray[np.float64], free: NDArray[np.bool_], etype: str, tolerance: float = 0.0
 ) -> NDArray[np.bool_]:
@@ -44,13 +56,7 @@ def could_be_valid(
     table = np.array(CORNER_TRIPLES[etype])
     if (table < 0).any():  # a shell's corners are not volumes: no proof
         return np.ones(len(posed), dtype=bool)
-    corners = posed[:, table]  # (L, C, 4, 3)
-    e1, e2, e3 = (corners[:, :, s] - corners[:, :, 0] for s in (1, 2, 3))
-    grads = np.stack(
-        [np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=2
-    )  # d det / d (node 1, 2, 3), (L, C, 3, 3)
-    det = np.einsum("lci,lci->lc", e1, grads[:, :, 0])
-    grads = np.concatenate([-grads.sum(axis=2, keepdims=True), grads], axis=2)
+    det, grads = corner_determinant_gradients(posed[:, table])  # (L, C), (L, C, 4, 3)
     n_free = free[:, table].sum(axis=-1)  # (L, C)
     margin = tolerance * np.abs(det).max(axis=1)  # (L,)
     ok = ~((n_free == 0) & (det <= -margin[:, None])).any(axis=1)

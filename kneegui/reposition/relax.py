@@ -62,7 +62,7 @@ from kneegui.meshopt.quality_optimiser import (
 )
 from kneegui.meshopt.smoother import SmoothingReport, SmoothOptions
 from kneegui.model import ElementBlock
-from kneegui.quality.feasibility import could_be_valid
+from kneegui.quality.feasibility import corner_determinant_gradients, could_be_valid
 from kneegui.quality.kernels import corner_determinants
 from kneegui.quality.metrics import QualityResult, compute_quality
 from kneegui.reposition.contact import BoneSurfaceDistance, DistanceMemo
@@ -849,13 +849,10 @@ class ElasticRelaxation:
         tets, column, rest_det, node = tets[keep], column[keep], rest_det[keep], node[keep]
         if not len(tets):
             return node, np.zeros((0, 3)), np.zeros(0)
-        p = x[tets]
-        a, b, e = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+        det, grads = corner_determinant_gradients(x[tets])
         # oriented as at rest: the determinant's sign there is the valid one
         sign = np.sign(rest_det)
-        det = sign * np.einsum("ij,ij->i", e, np.cross(a, b))
-        grads = np.stack([np.zeros_like(a), np.cross(b, e), np.cross(e, a), np.cross(a, b)], 1)
-        grads[:, 0] = -grads[:, 1:].sum(axis=1)
+        det = sign * det
         g = sign[:, None] * grads[np.arange(len(tets)), column]
         size = np.linalg.norm(g, axis=1)
         ok = size > 0
