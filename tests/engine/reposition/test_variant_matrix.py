@@ -265,7 +265,8 @@ def test_welded_joint_corners_proven_locked_leave_the_energy(cells, repositioner
     bones leave no valid shape (their free nodes cannot save them: the pre-flight's proof at
     this pose), and keeps fewer movable elements inverted than when their corners pulled the
     tissue around them (coarse demo, 6 December: 54 with them, 27 without, and 27 with the
-    pinned corners' planes of 7 December (26 before their gradient's last bits changed); the cell's target of none is still a known miss)."""
+    pinned corners' planes of 7 December (26 before their gradient's last bits changed); the
+    cell's target of none is still a known miss)."""
     cell = cells("welded", 90.0)
     _, rep = repositioners("welded")
     relaxation = rep.relaxation
