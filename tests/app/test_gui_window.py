@@ -113,12 +113,25 @@ def test_slider_reposes_live_points_in_place(demo_window, qtbot):
     assert measure_flexion(ws.coords, ws.setup) == pytest.approx(90.0, abs=0.2)
     hidden = set(ws.hidden_parts)
     assert hidden  # skin and flesh start hidden: their points do not follow the slider
+    drawn = set(vp.drawn_parts())
+    # the trabecular bones, each inside its cortical shell, are shown but not drawn
+    inside = set(vp.surfaces) - hidden - drawn
+    assert len(inside) == 4
     for pid, surf in vp.surfaces.items():
         assert surf.mesh is meshes[pid]
         pts = vtk_to_numpy(surf.mesh.GetPoints().GetData())
         assert np.shares_memory(pts, buffers[pid])
-        if pid not in hidden:
+        if pid in drawn:
             np.testing.assert_array_equal(pts, ws.coords[surf.model_index])
+    ws.set_clip(True)  # cut open, the view draws them, brought up to date
+    vp.flush()
+    assert inside <= set(vp.drawn_parts())
+    for pid in inside:
+        pts = vtk_to_numpy(vp.surfaces[pid].mesh.GetPoints().GetData())
+        np.testing.assert_array_equal(pts, ws.coords[vp.surfaces[pid].model_index])
+    ws.set_clip(False)
+    vp.flush()
+    assert not inside & set(vp.drawn_parts())
     for pid in hidden:  # shown, a part is brought up to date
         ws.set_part_visible(pid, True)
     vp.flush()
@@ -250,7 +263,9 @@ def test_live_heatmaps_are_the_full_evaluations_values(demo_window, qtbot):
             for shown_metric, values in ((metric, expected), ("aspect", aspect)):
                 shown = ws.element_values(shown_metric, cells)
                 sel = cells[np.isfinite(shown[cells])]
-                assert len(sel) >= 100
+                # solids drawn: ligaments, menisci, tendon (the trabecular bones, inside
+                # their cortical shells, are not drawn, so not measured)
+                assert len(sel) >= 50, shown_metric
                 np.testing.assert_array_equal(shown[sel], values[sel])
     finally:
         ws.set_colour_mode("part")
