@@ -13,7 +13,7 @@ order as :func:`kneegui.io.vtu.vtk_cell_arrays` and :meth:`QualityResult.concate
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pyvista as pv
@@ -53,12 +53,12 @@ class PartSurface:
         Global cell index of each face / line.
     n_elements : int
         Elements of the part (all types).
-    enclosures : tuple of frozenset of int, or None
-        When every face of the part is also a face of other parts (a shell drawn over it, or
-        the solid on the other side of an interface), the distinct sets of those other parts,
-        one set per group of faces: the part cannot be seen from outside while each set has a
-        part that is shown (:func:`enclosed_parts`). None when the part has a face no other
-        part shares, or shells or lines of its own.
+    face_group : (P,) ndarray of int64
+        Per face (polygon) of ``mesh``, in its order after the lines: an index shared by every
+        part's copy of the same face (the same corner nodes), so that :func:`hidden_faces` can
+        tell the faces between two parts from those on the outside.
+    shell_face : (P,) ndarray of bool
+        Per face: a shell element's (else a solid's boundary face).
     """
 
     part_id: int
@@ -66,11 +66,13 @@ class PartSurface:
     model_index: NDArray[np.int64]
     cell_index: NDArray[np.int64]
     n_elements: int
-    enclosures: tuple[frozenset[int], ...] | None = None
+    face_group: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    shell_face: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def _boundary_faces(model: Model, pid: int) -> tuple[list[NDArray], list[NDArray], list[NDArray]]:
-    """Faces used once within the part (solids), all shell faces, and line elements."""
+    """Faces used once within the part (solids, kind "face"), all shell faces ("shell"), and
+    line elements ("line")."""
     quads, tris, quad_cells, tri_cells = boundary_faces(model.blocks, [pid], with_cells=True)
     faces, owners, kinds = [tris, quads], [tri_cells, quad_cells], ["face", "face"]
     offsets = block_offsets(model.blocks)
@@ -81,7 +83,7 @@ def _boundary_faces(model: Model, pid: int) -> tuple[list[NDArray], list[NDArray
         if len(rows):
             faces.append(block.conn[rows][:, : 2 if etype in LINE_TYPES else None])
             owners.append(offsets[etype] + rows)
-            kinds.append("line" if etype in LINE_TYPES else "face")
+            kinds.append("line" if etype in LINE_TYPES else "shell")
     keep = [i for i, f in enumerate(faces) if len(f)]
     return [faces[i] for i in keep], [owners[i] for i in keep], [kinds[i] for i in keep]
 
@@ -97,47 +99,46 @@ def _face_keys(faces: NDArray[np.int64]) -> NDArray[np.int64]:
     return keys
 
 
-def _enclosures(
-    faces_of: dict[int, list[NDArray[np.int64]]], solid_only: set[int]
-) -> dict[int, tuple[frozenset[int], ...]]:
-    """For each part of ``solid_only`` (parts drawn with solid boundary faces alone) whose every
-    face is a face of another part too: the distinct sets of the other parts sharing a face."""
+def _face_groups(faces_of: dict[int, list[NDArray[np.int64]]]) -> dict[int, NDArray[np.int64]]:
+    """Per part, for each of its faces (in ``faces_of`` order), an index shared by every
+    part's copy of the same face."""
     pids = [p for p in faces_of if faces_of[p]]
     if not pids:
         return {}
-    keys = [_face_keys(f) for p in pids for f in faces_of[p]]
-    owner = np.concatenate([np.full(len(f), p, dtype=np.int64) for p in pids for f in faces_of[p]])
-    _, group = np.unique(np.concatenate(keys), axis=0, return_inverse=True)
-    group = group.ravel()
-    order = np.lexsort((owner, group))
-    group, owner = group[order], owner[order]
-    out: dict[int, tuple[frozenset[int], ...]] = {}
-    shared = np.zeros(len(group), dtype=bool)
-    shared[1:] |= group[1:] == group[:-1]
-    shared[:-1] |= group[:-1] == group[1:]
-    for pid in solid_only:
-        mine = owner == pid
-        if not mine.any() or not shared[mine].all():
-            continue
-        others = np.isin(group, group[mine]) & ~mine
-        sets = {}
-        for g, p in zip(group[others].tolist(), owner[others].tolist(), strict=True):
-            sets.setdefault(g, set()).add(p)
-        out[pid] = tuple(sorted({frozenset(v) for v in sets.values()}, key=sorted))
+    keys = np.concatenate([_face_keys(f) for p in pids for f in faces_of[p]])
+    _, group = np.unique(keys, axis=0, return_inverse=True)
+    group = group.ravel().astype(np.int64)
+    sizes = np.cumsum([0] + [sum(len(f) for f in faces_of[p]) for p in pids])
+    return {p: group[a:b] for p, a, b in zip(pids, sizes[:-1], sizes[1:], strict=True)}
+
+
+def hidden_faces(surfaces: dict[int, PartSurface], shown: set[int]) -> dict[int, NDArray[np.bool_]]:
+    """Per shown part, which of its faces no one can see from outside while the parts
+    ``shown`` are drawn opaque and whole (no cut): a solid's boundary face that another shown
+    part also has (a shell drawn over it, or the solid on the other side of an interface); a
+    shell face between two shown solids (a cortical shell with flesh outside and trabecular bone
+    inside), and of shells on the same face all but the one of the smallest part id."""
+    pids = [p for p in sorted(shown) if len(surfaces[p].face_group)]
+    if not pids:
+        return {p: np.zeros(len(surfaces[p].face_group), dtype=bool) for p in shown}
+    group = np.concatenate([surfaces[p].face_group for p in pids])
+    shell = np.concatenate([surfaces[p].shell_face for p in pids])
+    owner = np.concatenate([np.full(len(surfaces[p].face_group), p) for p in pids])
+    size = int(group.max()) + 1
+    solids = np.bincount(group[~shell], minlength=size)
+    shells = np.bincount(group[shell], minlength=size)
+    first_shell = np.full(size, np.iinfo(np.int64).max)
+    np.minimum.at(first_shell, group[shell], owner[shell])
+    hidden = np.where(
+        shell,
+        (solids[group] >= 2) | ((shells[group] >= 2) & (owner != first_shell[group])),
+        solids[group] + shells[group] >= 2,
+    )
+    out = {p: np.zeros(len(surfaces[p].face_group), dtype=bool) for p in shown}
+    bounds = np.cumsum([0] + [len(surfaces[p].face_group) for p in pids])
+    for p, a, b in zip(pids, bounds[:-1], bounds[1:], strict=True):
+        out[p] = hidden[a:b]
     return out
-
-
-def enclosed_parts(surfaces: dict[int, PartSurface], shown: set[int]) -> set[int]:
-    """Parts of ``shown`` that cannot be seen from outside: every face of theirs is a face of a
-    shown part as well (a cortical shell over the trabecular bone, flesh around it on every
-    side). Hidden parts still hold their place: a part inside a part that is itself enclosed is
-    enclosed too. Meaningless while the view is cut open or drawn see-through."""
-    return {
-        pid
-        for pid in shown
-        if (cover := surfaces[pid].enclosures) is not None
-        and all(not group.isdisjoint(shown) for group in cover)
-    }
 
 
 def part_surfaces(model: Model) -> dict[int, PartSurface]:
@@ -145,18 +146,16 @@ def part_surfaces(model: Model) -> dict[int, PartSurface]:
     counts = model.element_counts()
     out: dict[int, PartSurface] = {}
     faces_of: dict[int, list[NDArray[np.int64]]] = {}
-    solid_only: set[int] = set()
+    shell_of: dict[int, NDArray[np.bool_]] = {}
     for pid in sorted(counts):
         faces, owners, kinds = _boundary_faces(model, pid)
         if not faces:
             continue
-        faces_of[pid] = [f for f, k in zip(faces, kinds, strict=True) if k == "face"]
-        if not any(
-            (block.part_ids == pid).any()
-            for etype, block in model.blocks.items()
-            if etype in SHELL_TYPES or etype in LINE_TYPES
-        ):
-            solid_only.add(pid)
+        polygons = [(f, k) for f, k in zip(faces, kinds, strict=True) if k != "line"]
+        faces_of[pid] = [f for f, _ in polygons]
+        shell_of[pid] = np.concatenate(
+            [np.full(len(f), k == "shell") for f, k in polygons] or [np.zeros(0, dtype=bool)]
+        )
         used = sorted_unique(np.concatenate([f.reshape(-1) for f in faces]))
         local = np.full(model.n_nodes, -1, dtype=np.int64)
         local[used] = np.arange(len(used))
@@ -184,6 +183,7 @@ def part_surfaces(model: Model) -> dict[int, PartSurface]:
         out[pid] = PartSurface(
             pid, mesh, used.astype(np.int64), cell_index, sum(counts[pid].values())
         )
-    for pid, cover in _enclosures(faces_of, solid_only).items():
-        out[pid].enclosures = cover
+    for pid, group in _face_groups(faces_of).items():
+        out[pid].face_group = group
+        out[pid].shell_face = shell_of[pid]
     return out

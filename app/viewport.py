@@ -20,11 +20,11 @@ import vtk
 from numpy.typing import NDArray
 from PySide6.QtCore import QEvent, QObject, QPoint, QRect, QSize, Qt, QTimer
 from PySide6.QtWidgets import QVBoxLayout, QWidget
-from vtk.util.numpy_support import vtk_to_numpy
+from vtk.util.numpy_support import numpy_to_vtkIdTypeArray, vtk_to_numpy
 
 from app.colors import ROLE_COLOURS, UNASSIGNED_COLOUR
 from app.native_view import NativeInteractor, interactor_class
-from app.scene import PartSurface, build_grid, enclosed_parts, part_surfaces
+from app.scene import PartSurface, build_grid, hidden_faces, part_surfaces
 from app.workspace import HEATMAP_METRICS, Workspace
 from kneegui.topology import sorted_unique
 
@@ -68,6 +68,8 @@ class Viewport(QWidget):
         self.surfaces: dict[int, PartSurface] = {}
         self.actors: dict[int, vtk.vtkActor] = {}
         self._points: dict[int, NDArray[np.float64]] = {}
+        # per part, the cells of its surface the actor draws (None: all, the surface itself)
+        self._drawn_rows: dict[int, NDArray[np.int64] | None] = {}
         self.grid: pv.UnstructuredGrid | None = None
         self._overlays: dict[str, object] = {}
         self._highlight: tuple[pv.UnstructuredGrid, NDArray[np.int64]] | None = None
@@ -182,6 +184,7 @@ class Viewport(QWidget):
         self.grid = build_grid(model)
         self.actors.clear()
         self._points.clear()
+        self._drawn_rows.clear()
         for pid, surf in self.surfaces.items():
             # the mapper reads the mesh directly: pyvista's add_mesh would put a Python
             # algorithm (active scalars) between them, run on every render of every part
@@ -207,27 +210,48 @@ class Viewport(QWidget):
         return self.ws.colour_mode == "quality" and self.ws.threshold is not None
 
     def _apply_visibility(self) -> bool:
-        """Draw the parts the user shows, less those no one can see from outside: a part whose
-        every face is a face of a shown part too (the trabecular bone inside its cortical shell;
-        :func:`app.scene.enclosed_parts`) costs render time for nothing, about a quarter of the
-        frame on the demo leg in software GL. All are drawn while the view is cut open or
-        see-through. Returns whether the drawn set changed."""
+        """Draw the parts the user shows, less the faces no one can see from outside: a face
+        two shown parts share (the trabecular bone under its cortical shell, flesh against
+        flesh, bone or skin; :func:`app.scene.hidden_faces`) costs render time and changes no
+        pixel: on the demo leg the four trabecular bones are a quarter of the default view's
+        render, and with skin and flesh shown three faces in four are such. A part left
+        without a face or a line is not drawn. Every face is drawn while the view is cut open
+        or see-through. Returns whether what is drawn changed."""
         ws = self.ws
         shown = {pid for pid in self.actors if pid not in ws.hidden_parts}
-        inside = set()
-        if not (ws.clip_enabled or self._see_through()):
-            inside = enclosed_parts(self.surfaces, shown)
+        whole = ws.clip_enabled or self._see_through()
+        hidden = {} if whole else hidden_faces(self.surfaces, shown)
         changed = False
         for pid, actor in self.actors.items():
-            drawn = pid in shown and pid not in inside
+            surf = self.surfaces[pid]
+            rows = None  # every cell of surf.mesh
+            if pid in hidden and hidden[pid].any():
+                n_lines = surf.mesh.GetNumberOfLines()
+                rows = np.concatenate([np.arange(n_lines), n_lines + np.flatnonzero(~hidden[pid])])
+            drawn = pid in shown and (rows is None or len(rows) > 0)
+            old = self._drawn_rows.get(pid)
+            if drawn and not (
+                (rows is None and old is None)
+                or (rows is not None and old is not None and np.array_equal(rows, old))
+            ):
+                actor.mapper.SetInputData(
+                    surf.mesh if rows is None else _cell_subset(surf.mesh, rows)
+                )
+                self._drawn_rows[pid] = rows
+                changed = True
             if bool(actor.GetVisibility()) != drawn:
                 actor.SetVisibility(drawn)
                 changed = True
         return changed
 
     def drawn_parts(self) -> list[int]:
-        """Parts whose surface is drawn now (shown, and not enclosed by other shown parts)."""
+        """Parts whose surface is drawn now (shown, with a face not hidden by other parts)."""
         return [pid for pid, actor in self.actors.items() if actor.GetVisibility()]
+
+    def drawn_cells(self, pid: int) -> NDArray[np.int64]:
+        """Global cells of the faces and lines of part ``pid`` that are drawn now."""
+        surf, rows = self.surfaces[pid], self._drawn_rows.get(pid)
+        return surf.cell_index if rows is None else surf.cell_index[rows]
 
     def _colour_parts(self) -> None:
         for pid, actor in self.actors.items():
@@ -254,7 +278,7 @@ class Viewport(QWidget):
     # ------------------------------------------------------------------ colours
     def _displayed_cells(self) -> NDArray[np.int64]:
         """Global cells that own a face of a drawn part (the ones the heat-map shows)."""
-        chunks = [self.surfaces[p].cell_index for p in self.drawn_parts()]
+        chunks = [self.drawn_cells(p) for p in self.drawn_parts()]
         return sorted_unique(np.concatenate(chunks)) if chunks else np.zeros(0, dtype=np.int64)
 
     def _colour_values(self, cells: NDArray[np.int64] | None) -> NDArray[np.float64]:
@@ -298,7 +322,7 @@ class Viewport(QWidget):
         first = None
         for pid, surf in self.surfaces.items():
             face_values = values[surf.cell_index]
-            self._write_values(surf, face_values)
+            self._write_values(pid, face_values)
             actor = self.actors[pid]
             has = bool(np.isfinite(face_values).any())
             actor.mapper.SetScalarVisibility(has)
@@ -334,15 +358,21 @@ class Viewport(QWidget):
         values = self._colour_values(None if full else self._shown_cells)
         for pid in self.drawn_parts():
             surf = self.surfaces[pid]
-            self._write_values(surf, values[surf.cell_index])
+            self._write_values(pid, values[surf.cell_index])
         if full:
             self._update_highlight(values)
 
-    @staticmethod
-    def _write_values(surf: PartSurface, face_values: NDArray[np.float64]) -> None:
-        array = surf.mesh.GetCellData().GetArray("value")
-        vtk_to_numpy(array)[:] = face_values
-        array.Modified()
+    def _write_values(self, pid: int, face_values: NDArray[np.float64]) -> None:
+        """Write one value per cell of part ``pid``'s surface into the surface and, where its
+        actor draws only some of the cells, into those too."""
+        targets = [(self.surfaces[pid].mesh, face_values)]
+        rows = self._drawn_rows.get(pid)
+        if rows is not None:
+            targets.append((self.actors[pid].mapper.GetInput(), face_values[rows]))
+        for data, values in targets:
+            array = data.GetCellData().GetArray("value")
+            vtk_to_numpy(array)[:] = values
+            array.Modified()
 
     def _update_highlight(self, values: NDArray[np.float64]) -> None:
         ws = self.ws
@@ -649,7 +679,7 @@ class Viewport(QWidget):
             return None
         surf = self.surfaces[pid]
         point = np.array(picker.GetPickPosition())
-        cell = surf.mesh.GetCell(picker.GetCellId())
+        cell = picker.GetDataSet().GetCell(picker.GetCellId())  # the faces drawn: same points
         ids = np.array([cell.GetPointId(i) for i in range(cell.GetNumberOfPoints())])
         local = ids[np.argmin(np.linalg.norm(self._points[pid][ids] - point, axis=1))]
         return int(self.ws.model.node_ids[surf.model_index[local]])
@@ -853,3 +883,31 @@ def _quality_clim(metric: str, values: NDArray[np.float64]) -> tuple[float, floa
         return (1.0, max(hi, 1.5))
     span = float(np.percentile(np.abs(finite), 99.5)) if len(finite) else 1.0
     return (-max(span, 0.5), max(span, 0.5))
+
+
+def _cell_subset(mesh: pv.PolyData, rows: NDArray[np.int64]) -> pv.PolyData:
+    """The cells ``rows`` of ``mesh`` (its lines first, then its faces, as VTK orders them) as a
+    new polydata on the SAME points object, so that moving the surface's points in place moves
+    it too; with its own ``value`` cell array, the active scalars."""
+    sub = pv.PolyData()
+    sub.SetPoints(mesh.GetPoints())
+    n_lines = mesh.GetNumberOfLines()
+    if n_lines:
+        sub.SetLines(mesh.GetLines())
+    polys = mesh.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+    faces = rows[rows >= n_lines] - n_lines
+    starts, stops = offsets[faces], offsets[faces + 1]
+    sizes = stops - starts
+    new_offsets = np.concatenate([[0], np.cumsum(sizes)])
+    take = np.repeat(starts - new_offsets[:-1], sizes) + np.arange(new_offsets[-1])
+    cells = vtk.vtkCellArray()
+    cells.SetData(
+        numpy_to_vtkIdTypeArray(new_offsets, deep=True),
+        numpy_to_vtkIdTypeArray(connectivity[take], deep=True),
+    )
+    sub.SetPolys(cells)
+    sub.cell_data["value"] = np.zeros(len(rows))
+    sub.GetCellData().SetActiveScalars("value")
+    return sub

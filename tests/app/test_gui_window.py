@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import pyvista as pv
 from PySide6.QtCore import QPoint, Qt
 from PySide6.QtGui import QImage
 from PySide6.QtTest import QTest
@@ -138,6 +139,29 @@ def test_slider_reposes_live_points_in_place(demo_window, qtbot):
     for pid in hidden:
         pts = vtk_to_numpy(vp.surfaces[pid].mesh.GetPoints().GetData())
         np.testing.assert_array_equal(pts, ws.coords[vp.surfaces[pid].model_index])
+    # everything shown: the faces between two parts (flesh on flesh, bone or under the skin)
+    # are not drawn; what is drawn is each surface's own faces on its own moving points
+    drawn_faces = 0
+    for pid in vp.drawn_parts():
+        surf, data = vp.surfaces[pid], vp.actors[pid].mapper.GetInput()
+        assert data.GetPoints() is surf.mesh.GetPoints()
+        rows = vp._drawn_rows.get(pid)
+        if rows is not None:
+            lines = surf.mesh.GetNumberOfLines()
+            faces = surf.mesh.irregular_faces
+            expected = [tuple(faces[r - lines]) for r in rows if r >= lines]
+            assert [tuple(f) for f in pv.wrap(data).irregular_faces] == expected
+            np.testing.assert_array_equal(vp.drawn_cells(pid), surf.cell_index[rows])
+        drawn_faces += data.GetNumberOfPolys()
+    total_faces = sum(s.mesh.GetNumberOfPolys() for s in vp.surfaces.values())
+    assert drawn_faces < 0.4 * total_faces  # 3,346 of 17,938
+    ws.set_clip(True)
+    vp.flush()
+    assert sum(vp.actors[p].mapper.GetInput().GetNumberOfPolys() for p in vp.drawn_parts()) == sum(
+        s.mesh.GetNumberOfPolys() for s in vp.surfaces.values()
+    )
+    ws.set_clip(False)
+    for pid in hidden:
         ws.set_part_visible(pid, False)
     vp.flush()
     assert demo_window.flexion_panel.spin.value() == pytest.approx(90.0)
@@ -339,9 +363,12 @@ def test_heatmaps_threshold_worst_list_and_cutaway(demo_window, qtbot):
     full = compute_quality(ws.coords, ws.model.blocks).concatenated("jacobian_corner")
     measured = np.full(ws.model.n_elements, np.nan)
     measured[np.isfinite(jac)] = full
-    for pid, surf in vp.surfaces.items():
-        if pid not in ws.hidden_parts:
-            np.testing.assert_allclose(surf.mesh.cell_data["value"], measured[surf.cell_index])
+    for pid in vp.drawn_parts():  # the faces drawn (a face between two parts is not)
+        surf, rows = vp.surfaces[pid], vp._drawn_rows.get(pid)
+        sel = slice(None) if rows is None else rows
+        np.testing.assert_allclose(
+            surf.mesh.cell_data["value"][sel], measured[surf.cell_index][sel]
+        )
     panel.mode.setCurrentIndex(panel.mode.findData("part"))
     vp.flush()
     assert not any(a.mapper.GetScalarVisibility() for a in vp.actors.values())
