@@ -6,6 +6,8 @@
   whose points are a gather of model nodes (``model_index``) and whose faces know the global cell
   they come from (``cell_index``), so the viewport can move points in place from the coordinate
   array and colour faces by any per-element value without rebuilding anything.
+- :func:`hidden_faces`: which of those faces two shown parts share (no one sees them from
+  outside; the viewport does not draw them).
 
 Global cell index = position in the concatenation of ``model.blocks`` in their order, the same
 order as :func:`kneegui.io.vtu.vtk_cell_arrays` and :meth:`QualityResult.concatenated`.

@@ -222,6 +222,7 @@ def run(
     element_type: str = "hex",
     joint: str = "sliding",
     heatmaps: Sequence[str] | None = None,
+    all_parts: bool = False,
 ) -> dict:
     os.environ.setdefault("QT_API", "pyside6")
     from PySide6.QtCore import QSettings
@@ -251,6 +252,9 @@ def run(
         raise RuntimeError(f"the window did not get ready: {window.last_error}") from exc
     ready_s = time.perf_counter() - t0
     _wait_until(app, lambda: not window.ws.preview_pending, 600)  # the live quality curve
+    if all_parts:  # skin and flesh too: the view an analyst checks the skin in
+        for pid in sorted(window.ws.hidden_parts):
+            window.ws.set_part_visible(pid, True)
     window.viewport.flush()
     size = window.viewport.plotter.ren_win.GetSize()
     load_before = os.getloadavg()
@@ -284,6 +288,7 @@ def run(
         "view_class": type(window.viewport.plotter).__name__,
         "demo_elements_requested": elements,
         "demo_variant": {"element_type": element_type, "joint": joint},
+        "all_parts_shown": all_parts,
         "model": {
             "nodes": model.n_nodes,
             "elements": model.n_elements,
@@ -313,9 +318,11 @@ def run(
 DEFAULT_VARIANT = ("hex", "sliding")
 
 
-def variant_suffix(element_type: str, joint: str) -> str:
-    """``""`` for the default demo, else ``"-tet-sliding"`` etc. (result and page names)."""
-    return "" if (element_type, joint) == DEFAULT_VARIANT else f"-{element_type}-{joint}"
+def variant_suffix(element_type: str, joint: str, all_parts: bool = False) -> str:
+    """``""`` for the default demo, else ``"-tet-sliding"`` etc., and ``"-all-parts"`` with
+    every part shown (result and page names)."""
+    name = "" if (element_type, joint) == DEFAULT_VARIANT else f"-{element_type}-{joint}"
+    return name + ("-all-parts" if all_parts else "")
 
 
 def _variant(result: dict) -> tuple[str, str]:
@@ -325,16 +332,25 @@ def _variant(result: dict) -> tuple[str, str]:
 
 def _variant_flags(result: dict) -> str:
     element_type, joint = _variant(result)
-    if (element_type, joint) == DEFAULT_VARIANT:
-        return ""
-    return f"with `--element-type {element_type} --joint {joint}` "
+    flags = (
+        []
+        if (element_type, joint) == DEFAULT_VARIANT
+        else [f"--element-type {element_type} --joint {joint}"]
+    )
+    if result.get("all_parts_shown"):
+        flags.append("--all-parts")
+    return f"with `{' '.join(flags)}` " if flags else ""
 
 
 def _variant_words(result: dict) -> str:
     element_type, joint = _variant(result)
     if (element_type, joint) == DEFAULT_VARIANT:
-        return "the default demo leg"
-    return f"the demo leg's {element_type} variant ({joint} joint)"
+        words = "the default demo leg"
+    else:
+        words = f"the demo leg's {element_type} variant ({joint} joint)"
+    if result.get("all_parts_shown"):
+        words += ", every part shown (skin and flesh too, which the window starts hidden)"
+    return words
 
 
 def _type_counts(model: dict) -> str:
@@ -349,7 +365,8 @@ def write_markdown(result: dict, path: Path) -> None:
         "# GUI slider benchmark",
         "",
         'Produced by `xvfb-run -a -s "-screen 0 1600x1000x24" python -m bench.gui_bench` '
-        f"{_variant_flags(result)}(bench/results/gui{variant_suffix(*_variant(result))}.json). "
+        f"{_variant_flags(result)}(bench/results/gui"
+        f"{variant_suffix(*_variant(result), bool(result.get('all_parts_shown')))}.json). "
         "The real main window on "
         f"{_variant_words(result)} ({m['nodes']} nodes, {m['elements']} elements: "
         f"{_type_counts(m)}; {m['parts']} parts); the flexion slider "
@@ -453,10 +470,15 @@ def main(argv: list[str] | None = None) -> int:
         help="comma-separated heat-maps to time (keys of app.heatmaps.HEATMAP_METRICS, e.g. "
         "jacobian,warpage,volume_change); default the first the window offers",
     )
+    parser.add_argument(
+        "--all-parts",
+        action="store_true",
+        help="show every part (skin and flesh too, which the window starts hidden)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="default bench/results/gui.json")
     parser.add_argument("--markdown", type=Path, default=None, help="default docs/gui-benchmark.md")
     args = parser.parse_args(argv)
-    variant = variant_suffix(args.element_type, args.joint)
+    variant = variant_suffix(args.element_type, args.joint, args.all_parts)
     args.out = args.out or ROOT / "bench" / "results" / f"gui{variant}.json"
     args.markdown = args.markdown or ROOT / "docs" / f"gui-benchmark{variant}.md"
     result = run(
@@ -467,6 +489,7 @@ def main(argv: list[str] | None = None) -> int:
         element_type=args.element_type,
         joint=args.joint,
         heatmaps=args.heatmaps.split(",") if args.heatmaps else None,
+        all_parts=args.all_parts,
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
