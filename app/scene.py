@@ -23,7 +23,14 @@ from numpy.typing import NDArray
 
 from kneegui.io.vtu import vtk_cell_arrays
 from kneegui.model import Model
-from kneegui.topology import LINE_TYPES, SHELL_TYPES, block_offsets, boundary_faces, sorted_unique
+from kneegui.topology import (
+    LINE_TYPES,
+    SHELL_TYPES,
+    block_offsets,
+    boundary_faces,
+    row_groups,
+    sorted_unique,
+)
 
 
 def build_grid(model: Model) -> pv.UnstructuredGrid:
@@ -107,9 +114,7 @@ def _face_groups(faces_of: dict[int, list[NDArray[np.int64]]]) -> dict[int, NDAr
     pids = [p for p in faces_of if faces_of[p]]
     if not pids:
         return {}
-    keys = np.concatenate([_face_keys(f) for p in pids for f in faces_of[p]])
-    _, group = np.unique(keys, axis=0, return_inverse=True)
-    group = group.ravel().astype(np.int64)
+    group = row_groups(np.concatenate([_face_keys(f) for p in pids for f in faces_of[p]]))
     sizes = np.cumsum([0] + [sum(len(f) for f in faces_of[p]) for p in pids])
     return {p: group[a:b] for p, a, b in zip(pids, sizes[:-1], sizes[1:], strict=True)}
 

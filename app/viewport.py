@@ -214,7 +214,7 @@ class Viewport(QWidget):
         two shown parts share (the trabecular bone under its cortical shell, flesh against
         flesh, bone or skin; :func:`app.scene.hidden_faces`) costs render time and changes no
         pixel: on the demo leg the four trabecular bones are a quarter of the default view's
-        render, and with skin and flesh shown four faces in five are such. A part left
+        render, and with skin and flesh shown two faces in three are such. A part left
         without a face or a line is not drawn. Every face is drawn while the view is cut open
         or see-through. Returns whether what is drawn changed."""
         ws = self.ws

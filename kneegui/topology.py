@@ -242,19 +242,24 @@ def sorted_unique(values: ArrayLike) -> NDArray:
 
 
 # ---------------------------------------------------------------------- faces and corners
-def row_multiplicity(rows: NDArray[np.int64]) -> NDArray[np.int64]:
-    """How many times each row of a 2-D integer array occurs in it (via lexsort)."""
+def row_groups(rows: NDArray[np.int64]) -> NDArray[np.int64]:
+    """For each row of a 2-D integer array, an index shared by exactly the equal rows
+    (0, 1, ... in the rows' lexicographic order; via lexsort)."""
     if len(rows) == 0:
         return np.zeros(0, dtype=np.int64)
     order = np.lexsort(rows.T[::-1])
     srt = rows[order]
     new_group = np.ones(len(rows), dtype=bool)
     new_group[1:] = np.any(srt[1:] != srt[:-1], axis=1)
-    group = np.cumsum(new_group) - 1
-    counts = np.bincount(group)
     out = np.empty(len(rows), dtype=np.int64)
-    out[order] = counts[group]
+    out[order] = np.cumsum(new_group) - 1
     return out
+
+
+def row_multiplicity(rows: NDArray[np.int64]) -> NDArray[np.int64]:
+    """How many times each row of a 2-D integer array occurs in it (via lexsort)."""
+    group = row_groups(rows)
+    return np.bincount(group)[group] if len(group) else group
 
 
 def _used_once(faces: NDArray[np.int64]) -> NDArray[np.bool_]:

@@ -269,3 +269,15 @@ def test_corner_tetrahedra_in_chunks_are_the_same_and_ask_cancel(monkeypatch):
     assert len(asked) == -(-int(masks["hex8"].sum()) // 3) + 3  # ceil(hex / 3) + ceil(7 / 3)
     with pytest.raises(Cancelled):
         corner_tetrahedra(blocks, masks, cancel=lambda: True)
+
+
+def test_row_groups_share_an_index_exactly_between_equal_rows():
+    rng = np.random.default_rng(7)
+    rows = rng.integers(0, 4, size=(200, 3))
+    group = topology.row_groups(rows)
+    same_group = group[:, None] == group[None, :]
+    same_row = (rows[:, None, :] == rows[None, :, :]).all(axis=2)
+    np.testing.assert_array_equal(same_group, same_row)
+    assert sorted(set(group.tolist())) == list(range(len(np.unique(rows, axis=0))))
+    np.testing.assert_array_equal(topology.row_multiplicity(rows), same_row.sum(axis=1))
+    assert len(topology.row_groups(np.zeros((0, 3), dtype=np.int64))) == 0
