@@ -5,10 +5,11 @@ While the flexion slider is dragged the view follows the repositioner's cheap ma
 last move, or at once on release) :class:`ExportPreview` runs the export path,
 :func:`kneegui.reposition.pipeline.pose_model` with relaxation and smoothing, on the resting
 angle in a worker thread; its result (an :class:`ExportedPose`) becomes the view and is what
-File > Export writes, without solving again. While it runs, the pose each of its stages ends
-on is shown as it comes (:data:`RELAXING`: the untangled pose, 0.4 of the export's time on the
-paper-scale demo at 90°, then the quality-optimised one), marked as such: it is not what the
-export writes, and File > Export refuses it.
+File > Export writes, without solving again. While it runs, the poses of its stages are shown
+as they come (:data:`RELAXING`: the first untangling round that leaves nothing inverted, 0.3 of
+the export's time on the paper-scale demo at 90°, the untangling's end, then the
+quality-optimised pose), marked as such: they are not what the export writes, and File > Export
+refuses them.
 
 The export of an angle depends on the poser and the angle alone (the engine's rule: the same
 bits whatever was posed before), so each result is kept for the poser it came from: back at an

@@ -116,9 +116,12 @@ class ImprovementRegion(Protocol):
         stop_when_untangled: bool,
         progress: ProgressCallback,
         cancel: CancelCallback,
+        untangled: Callable[[NDArray[np.float64]], None] | None = None,
     ) -> tuple[NDArray[np.float64], RelaxReport, bool]:
         """Stage 1: the new coordinates, its report, and whether stage 2 may follow (the
-        region is untangled, and there is a region)."""
+        region is untangled, and there is a region). ``untangled(coords)``, when given, is
+        called at most once with a copy of the whole pose as soon as nothing is inverted, if
+        that is before the stage ends."""
         ...
 
     def optimise(
@@ -173,7 +176,9 @@ def improve_region(
         :class:`kneegui.errors.Cancelled`).
     stage_done : callable, optional
         :data:`StageCallback`, after each stage another follows (a window shows the untangled
-        pose while the quality stage runs); it cannot change the result.
+        pose while the quality stage runs), and once before that with ``"untangle"`` and the
+        pose of the untangling's first round that leaves nothing inverted (before its rounds
+        at full stiffness); it cannot change the result.
 
     Returns
     -------
@@ -201,8 +206,15 @@ def improve_region(
     if options.relax is not None:
         t0 = time.perf_counter()
         optimise_next = options.quality is not None
+        first_untangled: Callable[[NDArray[np.float64]], None] | None = None
+        if stage_done is not None and (optimise_next or smoothing):
+            # the first untangled pose, before the stage's last rounds at full stiffness (on
+            # the paper-scale demo a quarter of the stage): a window shows it that much sooner
+            def first_untangled(pose: NDArray[np.float64]) -> None:
+                stage_done("untangle", pose)
+
         x, relaxation, untangled = region.untangle(
-            coords, options.relax, optimise_next, span("untangle"), should_cancel
+            coords, options.relax, optimise_next, span("untangle"), should_cancel, first_untangled
         )
         # a region left with corners inverted still gets the stage, around them (their nodes
         # held): its settling is what brings the tissue out of the bones

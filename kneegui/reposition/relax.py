@@ -1042,12 +1042,15 @@ class ElasticRelaxation:
         stop_when_untangled: bool,
         progress: ProgressCallback,
         cancel: Callable[[], bool],
+        untangled: Callable[[NDArray[np.float64]], None] | None = None,
     ) -> tuple[NDArray[np.float64], RelaxReport, bool]:
         """The chain's first stage on the degraded region (seeded also by skin nodes out of
         contour order): the energy's rounds (and restarts), ending when ``stop_when_untangled``
         as soon as nothing is inverted and the contact and contour-order planes have reached
         their final stiffness. Returns the new coordinates, the report and whether the quality
-        optimisation may follow."""
+        optimisation may follow. ``untangled(coords)`` is called once with a copy of the whole
+        pose after the first round that leaves nothing inverted (before the rounds at full
+        stiffness: a window shows it while they run); it cannot change the result."""
         x = np.array(coords, dtype=np.float64, copy=True)
         report = RelaxReport()
         if len(self.free) == 0 or len(self.tets) == 0:
@@ -1074,7 +1077,15 @@ class ElasticRelaxation:
             skip = self.locked_corners(x)
             report.locked_corners = len(skip)
             x, d_min, whole, det = self._minimise_energy(
-                x, free, contact_transforms, optimise_next, report, progress, cancel, skip=skip
+                x,
+                free,
+                contact_transforms,
+                optimise_next,
+                report,
+                progress,
+                cancel,
+                skip=skip,
+                untangled=untangled,
             )
             if d_min <= 0 and self.options.slow_eps_decrease > 0:
                 x, d_min = self._slow_pass(
@@ -1151,13 +1162,15 @@ class ElasticRelaxation:
         should_cancel: Callable[[], bool],
         options: RelaxOptions | None = None,
         skip: NDArray[np.int64] | None = None,
+        untangled: Callable[[NDArray[np.float64]], None] | None = None,
     ) -> tuple[NDArray[np.float64], float, FoldoverEnergy, NDArray[np.float64]]:
         """The energy's rounds (and restarts) over the region ``free``, with contact when
         ``transforms`` are given, ending as soon as nothing is inverted when the quality
         optimisation follows (``optimise_next``); fills ``report``. Returns the new coordinates,
         the smallest corner det J, the region's energy and its corners' det J at the end (what
         the slow pass starts from). ``options`` replaces the relaxation's own for this run (the
-        slow pass's schedule). The corners ``skip`` (:meth:`locked_corners`) are left out."""
+        slow pass's schedule). The corners ``skip`` (:meth:`locked_corners`) are left out.
+        ``untangled``: as :meth:`untangle`'s."""
         opt = options or self.options
         whole = sub = self.energy(free, should_cancel, skip)
         raise_if_cancelled(should_cancel, "relaxation cancelled")
@@ -1296,6 +1309,13 @@ class ElasticRelaxation:
                     }
                 )
                 report_progress(min(1.0, (rnd + 1) / opt.max_rounds), "relaxing soft tissue")
+                if d_min > 0 and untangled is not None:
+                    # nothing inverted in the round's region, and outside it nothing moved
+                    # since it was focused on the corners still inverted: the pose so far
+                    shown = x.copy()
+                    shown[sub.nodes] = xl
+                    untangled(shown)
+                    untangled = None
                 decrease = (before - after) / max(abs(before), 1e-300)
                 eps = next_eps(eps, before, after, d_min, opt.eps_decrease)
                 stiff_enough = stiffness >= opt.contact_stiffness or not len(planes[0])
@@ -1875,12 +1895,12 @@ class RelaxedRegion:
         self.transforms = transforms
         self._smooth = smooth
 
-    def untangle(self, coords, options, stop_when_untangled, progress, cancel):
+    def untangle(self, coords, options, stop_when_untangled, progress, cancel, untangled=None):
         """Stage 1 (:meth:`ElasticRelaxation.untangle`; ``options`` are the relaxation's)."""
         if options != self.relaxation.options:
             raise ValueError("the relaxation was built with other RelaxOptions")
         return self.relaxation.untangle(
-            coords, self.transforms, stop_when_untangled, progress, cancel
+            coords, self.transforms, stop_when_untangled, progress, cancel, untangled
         )
 
     def optimise(self, coords, options, progress, cancel):

@@ -108,15 +108,17 @@ def test_rest_shows_the_export_as_the_cli_writes_it_and_export_does_not_solve_ag
     qtbot.waitUntil(lambda: indicator.text().startswith("LIVE MAPPING"), timeout=10000)
     wait_idle(qtbot, ws, timeout=300)
     assert demo_window.last_error is None, demo_window.last_error
-    # the live pose first, then the poses the export's stages end on (untangled, then
-    # quality-optimised), then the export of the resting angle
+    # the live pose first, then the poses of the export's stages (the untangling's first
+    # round that leaves nothing inverted, the untangling's end, the quality stage's end), then
+    # the export of the resting angle
     assert shown[0] == (90.0, "live mapping") and shown[-1] == (90.0, "as exported")
     kinds = [kind for _, kind in shown]
     first = kinds.index("relaxing")
-    assert kinds[first:-1] == ["relaxing", "relaxing"] and "relaxing" not in kinds[:first]
-    assert len(banners) == 2 and banners[0].startswith("RELAXING · 90.0° · inverted 0 ·")
-    assert "untangled, not yet exported · exporting:" in banners[0], banners[0]
-    assert "quality-optimised, not yet exported" in banners[1], banners[1]
+    assert kinds[first:-1] == ["relaxing"] * 3 and "relaxing" not in kinds[:first]
+    assert len(banners) == 3 and banners[0].startswith("RELAXING · 90.0° · inverted 0 ·")
+    for banner in banners[:2]:
+        assert "untangled, not yet exported · exporting:" in banner, banner
+    assert "quality-optimised, not yet exported" in banners[2], banners[2]
     # stages of the same export, not copies of its end: the quality stage and the smoothing
     # still moved nodes after them
     assert np.abs(staged[0] - ws.exported.coords).max() > 1e-3

@@ -28,9 +28,13 @@ class Region:
     def progress(self, fraction, message):
         self.fractions.append(fraction)
 
-    def untangle(self, coords, options, stop_when_untangled, progress, cancel):
+    def untangle(self, coords, options, stop_when_untangled, progress, cancel, untangled=None):
         assert isinstance(options, RelaxOptions)
         self.calls.append(f"untangle(stop={stop_when_untangled})")
+        if untangled is not None and self.untangled:
+            pose = coords + 0.5  # the first untangled round's pose, before the last rounds
+            untangled(pose)
+            pose[:] = -100.0  # the region's own copy: what the callee saw must not change
         progress(1.0, "untangled")
         report = RelaxReport(
             free_nodes=3,
@@ -102,7 +106,7 @@ def test_a_region_with_nothing_to_untangle_is_not_optimised_for_being_stuck():
     """No region at all (untangle says no, nothing inverted): no quality stage."""
 
     class Empty(Region):
-        def untangle(self, coords, options, stop_when_untangled, progress, cancel):
+        def untangle(self, coords, options, stop_when_untangled, progress, cancel, untangled=None):
             self.calls.append("untangle")
             return coords, RelaxReport(), False
 
@@ -124,9 +128,12 @@ def test_without_a_quality_stage_a_region_left_inverted_goes_on_to_the_smoothing
 @pytest.mark.parametrize(
     ("options", "stages"),
     [
-        (ImprovementOptions(), [("untangle", 1.0), ("quality", 3.0)]),
-        (ImprovementOptions(smooth=None), [("untangle", 1.0)]),  # the last stage: no call
-        (ImprovementOptions(quality=None), [("untangle", 1.0)]),
+        # the first untangled pose (0.5), then each stage's end that another stage follows
+        (ImprovementOptions(), [("untangle", 0.5), ("untangle", 1.0), ("quality", 3.0)]),
+        (ImprovementOptions(smooth=None), [("untangle", 0.5), ("untangle", 1.0)]),
+        (ImprovementOptions(quality=None), [("untangle", 0.5), ("untangle", 1.0)]),
+        # nothing follows the untangling: no call at all
+        (ImprovementOptions(quality=None, smooth=None), []),
         (ImprovementOptions(relax=None), []),
     ],
 )

@@ -63,3 +63,22 @@ def test_a_tangle_the_untangling_leaves_does_not_hold_back_the_rest_of_the_regio
     assert relaxation["inverted_corners_after"] > 0  # the case this test is about
     assert relaxation["quality"]["held_nodes"] > 0
     assert posed.report["volume_change"]["soft_element_p95_abs_pct"] <= 30.0
+
+
+def test_the_first_untangled_pose_is_handed_over_before_the_untangling_ends(small_repositioner):
+    """A window shows the export's stages while it runs: the first is now the pose of the
+    untangling's first round that leaves nothing inverted, before its last rounds at full
+    stiffness, and seeing it changes nothing of what the export writes."""
+    seen = []
+    plain = pose_model(small_repositioner, 90.0)
+    posed = pose_model(
+        small_repositioner, 90.0, stage_done=lambda stage, x: seen.append((stage, x.copy()))
+    )
+    np.testing.assert_array_equal(posed.model.coords, plain.model.coords)
+    assert [stage for stage, _ in seen] == ["untangle", "untangle", "quality"]
+    model = small_repositioner.model
+    first = compute_quality(seen[0][1], model.blocks)
+    assert plain.report["quality"]["posed"]["inverted"] == 0
+    assert first.n_inverted == 0
+    # the mapping left elements inverted there: the first stage is the untangling's work
+    assert compute_quality(small_repositioner.pose(90.0), model.blocks).n_inverted > 0
