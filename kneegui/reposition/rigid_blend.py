@@ -460,7 +460,9 @@ def exp_twists_apply(twists: NDArray[np.float64], points: NDArray[np.float64]) -
     Returns
     -------
     (M, 3) ndarray
-        The moved points: the same bits as :func:`exp_twists_apply_numpy`, the reference.
+        The moved points: the same bits as :func:`exp_twists_apply_numpy`, the reference,
+        wherever NumPy's ``sin``, ``cos`` and ``pow`` are the C library's (every x86-64 machine
+        with AVX2 under :mod:`kneegui.reproducible`'s pin).
     """
     twists = np.ascontiguousarray(twists, dtype=np.float64)
     points = np.ascontiguousarray(points, dtype=np.float64)
