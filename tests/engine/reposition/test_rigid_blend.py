@@ -181,3 +181,110 @@ def test_the_twist_exponential_moves_points_by_the_rigid_motion_it_came_from():
     points = rng.normal(size=(50, 3)) * 40.0
     twists = np.tile(log_rigid(motion), (50, 1))
     np.testing.assert_allclose(exp_twists_apply(twists, points), motion.apply(points), atol=1e-9)
+
+
+def _grid_laplacian(side: int) -> tuple:
+    """A 3-D grid's graph Laplacian (6 neighbours) with a small shift, and its nodes' coords."""
+    import scipy.sparse as sp
+
+    line = sp.diags([-np.ones(side - 1), -np.ones(side - 1)], [-1, 1])
+    eye = sp.identity(side)
+    along = [sp.kron(sp.kron(line, eye), eye), sp.kron(sp.kron(eye, line), eye)]
+    adjacency = along[0] + along[1] + sp.kron(sp.kron(eye, eye), line)
+    degree = -np.asarray(adjacency.sum(axis=1)).ravel()
+    lap = (sp.diags(degree + 1e-4) + adjacency).tocsr()
+    ticks = np.arange(side, dtype=float)
+    coords = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), axis=-1).reshape(-1, 3)
+    return lap, coords
+
+
+def test_the_coarse_space_solves_to_the_same_tolerance_in_fewer_iterations():
+    """The two-level preconditioner changes how fast block CG gets there, not where: the
+    residual test is the same, the solution agrees with a direct solve, and the iterations
+    (counted by the cancel polls, one per 25) drop at least by half on a grid Laplacian."""
+    import scipy.sparse.linalg as spla
+
+    from kneegui.reposition.rigid_blend import block_cg, coarse_space
+
+    lap, coords = _grid_laplacian(32)
+    rng = np.random.default_rng(3)
+    rhs = np.zeros((len(coords), 3))
+    rhs[coords[:, 0] == 0, 0] = 1.0  # a Dirichlet-like face: a solution smooth over the grid
+    rhs[coords[:, 2] == 31, 1] = 1.0
+    rhs[:, 2] = rng.random(len(coords))
+    exact = spla.splu(lap.tocsc()).solve(rhs)
+    polls = {}
+    results = {}
+    for name, coarse in (("jacobi", None), ("two-level", coarse_space(lap, coords, 4.0))):
+        calls = []
+        results[name] = block_cg(
+            lap, rhs, np.zeros_like(rhs), 1.0 / lap.diagonal(), rtol=1e-10,
+            cancel=lambda calls=calls: bool(calls.append(1)), coarse=coarse,
+        )  # fmt: skip
+        polls[name] = len(calls)
+        # the true residual, not the recurrence the solver tests: it drifts by rounding
+        residual = np.linalg.norm(rhs - lap @ results[name], axis=0)
+        assert np.all(residual <= 1e-9 * np.linalg.norm(rhs, axis=0))
+        np.testing.assert_allclose(results[name], exact, rtol=0, atol=1e-5 * np.abs(exact).max())
+    # here 10 polls against 3: the bound leaves a margin of 100 iterations
+    assert polls["two-level"] * 2 <= polls["jacobi"], polls
+
+
+def test_the_coarse_space_gives_the_same_bits_with_any_number_of_threads():
+    import numba
+
+    from kneegui.reposition.rigid_blend import _CG_CHUNK_ROWS, block_cg, coarse_space
+
+    lap, coords = _grid_laplacian(20)  # 8,000 unknowns: two row chunks
+    assert len(coords) > _CG_CHUNK_ROWS
+    rng = np.random.default_rng(7)
+    rhs = rng.random((len(coords), 4))
+    rhs[:, 2] *= 1e-9  # converges at another iteration than the others
+    rhs[:, 3] = 0.0  # nothing to solve: stays at its start
+    coarse = coarse_space(lap, coords, 5.0)
+    assert 20 <= coarse.count <= 100
+    results = []
+    before = numba.get_num_threads()
+    try:
+        for threads in sorted({1, before}):
+            numba.set_num_threads(threads)
+            results.append(
+                block_cg(lap, rhs, np.zeros_like(rhs), 1.0 / lap.diagonal(), coarse=coarse)
+            )
+    finally:
+        numba.set_num_threads(before)
+    for other in results[1:]:
+        np.testing.assert_array_equal(other, results[0])
+    assert np.all(results[0][:, 3] == 0.0) and np.all(results[0][:, :3] != 0.0)
+
+
+def test_harmonic_weights_of_a_large_model_take_the_coarse_space_and_agree(monkeypatch):
+    """Beyond DIRECT_SOLVE_MAX free nodes the weights come from block CG with the coarse space
+    (cells of COARSE_CELL_EDGES median edges): the same weights as the direct solve, to well
+    within what the blend can show (1e-6 of a unit weight)."""
+    from kneegui.reposition import rigid_blend
+    from kneegui.reposition.rigid_blend import harmonic_weights
+
+    n = 22
+    ticks = np.arange(n, dtype=float)
+    coords = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3)
+    index = np.arange(n**3).reshape(n, n, n)
+    edges = np.concatenate(
+        [
+            np.column_stack([index[:-1].ravel(), index[1:].ravel()]),
+            np.column_stack([index[:, :-1].ravel(), index[:, 1:].ravel()]),
+            np.column_stack([index[:, :, :-1].ravel(), index[:, :, 1:].ravel()]),
+        ]
+    )
+    anchors = [index[0].ravel(), index[-1].ravel(), index[:, 0, 0]]
+    anchors[2] = np.setdiff1d(anchors[2], np.concatenate(anchors[:2]))
+    free = np.setdiff1d(np.arange(n**3), np.concatenate(anchors))
+    direct = harmonic_weights(n**3, edges, free, anchors, coords)
+    built = []
+    real = rigid_blend.coarse_space
+    monkeypatch.setattr(rigid_blend, "DIRECT_SOLVE_MAX", 0)
+    monkeypatch.setattr(rigid_blend, "coarse_space", lambda *a: built.append(real(*a)) or built[-1])
+    iterative = harmonic_weights(n**3, edges, free, anchors, coords)
+    assert len(built) == 1 and 8 <= built[0].count <= 64  # 22 nodes a side, cells of 8 edges
+    np.testing.assert_allclose(iterative, direct, rtol=0, atol=1e-6)
+    assert np.abs(iterative - direct).max() > 0  # not the direct solve's own answer
