@@ -288,3 +288,27 @@ def test_harmonic_weights_of_a_large_model_take_the_coarse_space_and_agree(monke
     assert len(built) == 1 and 8 <= built[0].count <= 64  # 22 nodes a side, cells of 8 edges
     np.testing.assert_allclose(iterative, direct, rtol=0, atol=1e-6)
     assert np.abs(iterative - direct).max() > 0  # not the direct solve's own answer
+
+
+def test_the_coarse_space_solve_can_be_cancelled():
+    """A whole-body model's weights take seconds: the two-level solve asks ``cancel`` as often
+    as the Jacobi one (before the first iteration and every 25 after)."""
+    from kneegui.errors import Cancelled
+    from kneegui.reposition.rigid_blend import block_cg, coarse_space
+
+    lap, coords = _grid_laplacian(24)
+    rhs = np.zeros((len(coords), 2))
+    rhs[coords[:, 0] == 0, 0] = 1.0
+    rhs[coords[:, 1] == 0, 1] = 1.0
+    calls = []
+
+    def cancel() -> bool:
+        calls.append(1)
+        return len(calls) > 2
+
+    with pytest.raises(Cancelled):
+        block_cg(
+            lap, rhs, np.zeros_like(rhs), 1.0 / lap.diagonal(), rtol=1e-14,
+            cancel=cancel, coarse=coarse_space(lap, coords, 4.0),
+        )  # fmt: skip
+    assert len(calls) == 3
