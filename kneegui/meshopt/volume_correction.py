@@ -111,6 +111,9 @@ class VolumeCorrection:
     rest : (N, 3) ndarray
         The coordinates whose volumes are the aim.
     options : VolumeCorrectionOptions, optional
+    cancel : callable, optional
+        Asked between the set-up's steps; returning True raises
+        :class:`kneegui.errors.Cancelled`.
     """
 
     def __init__(
@@ -120,10 +123,17 @@ class VolumeCorrection:
         free: NDArray[np.bool_],
         rest: NDArray[np.float64],
         options: VolumeCorrectionOptions | None = None,
+        cancel: Callable[[], bool] | None = None,
     ) -> None:
         self.options = options or VolumeCorrectionOptions()
+
+        def check() -> None:
+            # between the set-up's steps: 2.9 s in all on the 1M demo, asked nothing before
+            raise_if_cancelled(cancel, "cancelled while preparing the volume correction")
+
         nodes, tets = [], []
         for etype, split in TET_SPLITS.items():
+            check()
             if etype not in blocks or etype not in rows or not len(rows[etype]):
                 continue
             local = np.asarray(split, dtype=np.int64)
@@ -141,12 +151,14 @@ class VolumeCorrection:
             tets.append(table)
         self.elem_nodes = np.concatenate(nodes) if nodes else np.zeros((0, _SLOTS), dtype=np.int64)
         self.elem_tets = np.concatenate(tets) if tets else np.zeros((0, _TETS, 4), dtype=np.int64)
+        check()
         n = len(rest)
         used = np.unique(self.elem_nodes[self.elem_nodes >= 0])
         self.free = used[np.asarray(free, dtype=bool)[used]]
         self.row = np.full(n, -1, dtype=np.int64)
         self.row[self.free] = np.arange(len(self.free))
         self.rest_volume = _element_volumes(rest, self.elem_nodes, self.elem_tets)
+        check()
         # free node -> (element, slot) incidence, in element order
         slot_row = self.row[np.maximum(self.elem_nodes, 0)]
         slot_row[self.elem_nodes < 0] = -1
@@ -156,6 +168,7 @@ class VolumeCorrection:
         self.inc_ptr = np.zeros(len(self.free) + 1, dtype=np.int64)
         counts = np.bincount(slot_row[e_idx, s_idx], minlength=len(self.free))
         np.cumsum(counts, out=self.inc_ptr[1:])
+        check()
         # the tetrahedra's edges: each free node's degree and its free neighbours
         pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
         ends = []
@@ -166,7 +179,9 @@ class VolumeCorrection:
             u = self.elem_nodes[e_of[valid], slot_p[valid]]
             v = self.elem_nodes[e_of[valid], slot_q[valid]]
             ends.append(np.minimum(u, v) * n + np.maximum(u, v))
+        check()
         keys = sorted_unique(np.concatenate(ends)) if ends else np.zeros(0, np.int64)
+        check()
         ra, rb = self.row[keys // n], self.row[keys % n]
         self.degree = np.bincount(
             np.concatenate([ra[ra >= 0], rb[rb >= 0]]), minlength=len(self.free)
@@ -175,6 +190,7 @@ class VolumeCorrection:
         src = np.concatenate([ra[both], rb[both]])
         dst = np.concatenate([rb[both], ra[both]])
         order = np.lexsort((dst, src))
+        check()
         self.nb_idx = dst[order]
         self.nb_ptr = np.zeros(len(self.free) + 1, dtype=np.int64)
         np.cumsum(np.bincount(src, minlength=len(self.free)), out=self.nb_ptr[1:])

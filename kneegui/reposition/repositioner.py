@@ -919,7 +919,7 @@ class Repositioner:
                 if self._volume_correction is None:
                     check("preparing the volume correction")
                     t = time.perf_counter()
-                    self._volume_correction = self._build_volume_correction(relaxation)
+                    self._volume_correction = self._build_volume_correction(relaxation, cancel)
                     self.timings_s["volume correction"] = time.perf_counter() - t
                 check("restoring the tissue's volume")
                 coords, corrected = self._volume_correction(coords, cancel)
@@ -951,9 +951,12 @@ class Repositioner:
             report = replace(report, relaxed=self._midside_on_edges(report.relaxed, bone))
         return coords, replace(report, volume_correction=corrected)
 
-    def _build_volume_correction(self, relaxation: ElasticRelaxation) -> VolumeCorrection:
+    def _build_volume_correction(
+        self, relaxation: ElasticRelaxation, cancel: Callable[[], bool] | None = None
+    ) -> VolumeCorrection:
         """The volume-restoring step over the soft solids with a relaxable node, moving those
-        nodes (the others would only pin it: a whole-body model's far tissue is left out)."""
+        nodes (the others would only pin it: a whole-body model's far tissue is left out);
+        ``cancel`` is asked between the set-up's steps."""
         soft = list(self.setup.parts_of(*SOFT_ROLES))
         free = relaxation.is_free
         rows = {
@@ -966,6 +969,7 @@ class Repositioner:
             relaxation.is_free,
             self.model.coords,
             self.options.volume_correction,
+            cancel,
         )
 
     def _midside_on_edges(self, coords: NDArray[np.float64], bone: BonePose) -> NDArray[np.float64]:
