@@ -206,7 +206,11 @@ def harmonic_weights(
         w = spla.splu(lap.tocsc()).solve(rhs)
     else:
         both = (pos[a] >= 0) & (pos[b] >= 0)
-        edge = float(np.median(np.linalg.norm(coords[a[both]] - coords[b[both]], axis=1)))
+        lengths = np.linalg.norm(coords[a[both]] - coords[b[both]], axis=1)
+        edge = float(np.median(lengths)) if len(lengths) else 0.0
+        if not edge > 0.0:  # no edge between free nodes: cells of about 512 nodes each
+            extent = np.ptp(coords[free], axis=0).max()
+            edge = max(float(extent), 1e-12) / max(len(free), 1) ** (1.0 / 3.0)
         coarse = coarse_space(lap, coords[free], COARSE_CELL_EDGES * edge)
         raise_if_cancelled(cancel, "solve cancelled")
         w = block_cg(

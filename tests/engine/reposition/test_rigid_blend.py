@@ -312,3 +312,25 @@ def test_the_coarse_space_solve_can_be_cancelled():
             cancel=cancel, coarse=coarse_space(lap, coords, 4.0),
         )  # fmt: skip
     assert len(calls) == 3
+
+
+def test_the_coarse_space_needs_no_edge_between_free_nodes(monkeypatch):
+    """Free nodes tied only to anchors give no free-free edge to measure the cells by: the
+    cells then follow the nodes' extent, and the weights still match the direct solve."""
+    from kneegui.reposition import rigid_blend
+    from kneegui.reposition.rigid_blend import harmonic_weights
+
+    rng = np.random.default_rng(9)
+    coords = rng.random((3000, 3)) * 100.0
+    anchors = [np.arange(0, 100), np.arange(100, 200)]
+    free = np.arange(200, 3000)
+    edges = np.column_stack([free, rng.integers(0, 200, len(free))])  # each to one anchor
+    direct = harmonic_weights(3000, edges, free, anchors, coords)
+    built = []
+    real = rigid_blend.coarse_space
+    monkeypatch.setattr(rigid_blend, "DIRECT_SOLVE_MAX", 0)
+    monkeypatch.setattr(rigid_blend, "coarse_space", lambda *a: built.append(real(*a)) or built[-1])
+    iterative = harmonic_weights(3000, edges, free, anchors, coords)
+    # 2,800 nodes in a 100 mm box: cells of about 57 mm, 8 of them (no cell size: 1 cell)
+    assert len(built) == 1 and 4 <= built[0].count <= 27
+    np.testing.assert_allclose(iterative, direct, rtol=0, atol=1e-6)
