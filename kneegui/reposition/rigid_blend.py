@@ -552,19 +552,7 @@ def _cg_iterations(
     for step in range(steps):
         if not active.any():
             return step
-        for chunk in prange(n_chunks):
-            acc = np.empty(k)
-            sums = np.zeros(k)
-            for i in range(chunk * _CG_CHUNK_ROWS, min(n, (chunk + 1) * _CG_CHUNK_ROWS)):
-                acc[:] = 0.0
-                for q in range(indptr[i], indptr[i + 1]):
-                    c, w = indices[q], data[q]
-                    for j in range(k):
-                        acc[j] += w * p[c, j]
-                for j in range(k):
-                    ap[i, j] = acc[j]
-                    sums[j] += p[i, j] * acc[j]
-            part_a[chunk, :] = sums
+        _product_dots(indptr, indices, data, p, ap, part_a)
         for j in range(k):
             p_ap = 0.0
             for chunk in range(n_chunks):
