@@ -123,10 +123,9 @@ def test_the_nearest_of_several_surfaces_is_the_distance_to_their_union_to_the_b
     np.testing.assert_array_equal(distance[:, :3].min(axis=1), expected)
 
 
-def test_harmonic_weights_are_the_same_given_the_surface_distances():
-    from kneegui.reposition.rigid_blend import harmonic_weights, surface_distances
-
-    n = 12
+def _cube_model(n: int) -> tuple:
+    """A cube of n x n x n nodes on a unit grid: its coordinates, node index grid, edges, three
+    anchor groups (two opposite faces and an edge line) and the free nodes."""
     ticks = np.arange(n, dtype=float)
     coords = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3)
     index = np.arange(n**3).reshape(n, n, n)
@@ -140,6 +139,25 @@ def test_harmonic_weights_are_the_same_given_the_surface_distances():
     anchors = [index[0].ravel(), index[-1].ravel(), index[:, 0, 0]]
     anchors[2] = np.setdiff1d(anchors[2], np.concatenate(anchors[:2]))
     free = np.setdiff1d(np.arange(n**3), np.concatenate(anchors))
+    return coords, index, edges, anchors, free
+
+
+def _coarse_spaces_built(monkeypatch) -> list:
+    """Force the iterative weights (no direct solve) and record every coarse space built."""
+    from kneegui.reposition import rigid_blend
+
+    built = []
+    real = rigid_blend.coarse_space
+    monkeypatch.setattr(rigid_blend, "DIRECT_SOLVE_MAX", 0)
+    monkeypatch.setattr(rigid_blend, "coarse_space", lambda *a: built.append(real(*a)) or built[-1])
+    return built
+
+
+def test_harmonic_weights_are_the_same_given_the_surface_distances():
+    from kneegui.reposition.rigid_blend import harmonic_weights, surface_distances
+
+    n = 12
+    coords, index, edges, anchors, free = _cube_model(n)
     measured = harmonic_weights(n**3, edges, free, anchors, coords)
     given = harmonic_weights(
         n**3,
@@ -262,28 +280,12 @@ def test_harmonic_weights_of_a_large_model_take_the_coarse_space_and_agree(monke
     """Beyond DIRECT_SOLVE_MAX free nodes the weights come from block CG with the coarse space
     (cells of COARSE_CELL_EDGES median edges): the same weights as the direct solve, to well
     within what the blend can show (1e-6 of a unit weight)."""
-    from kneegui.reposition import rigid_blend
     from kneegui.reposition.rigid_blend import harmonic_weights
 
     n = 22
-    ticks = np.arange(n, dtype=float)
-    coords = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3)
-    index = np.arange(n**3).reshape(n, n, n)
-    edges = np.concatenate(
-        [
-            np.column_stack([index[:-1].ravel(), index[1:].ravel()]),
-            np.column_stack([index[:, :-1].ravel(), index[:, 1:].ravel()]),
-            np.column_stack([index[:, :, :-1].ravel(), index[:, :, 1:].ravel()]),
-        ]
-    )
-    anchors = [index[0].ravel(), index[-1].ravel(), index[:, 0, 0]]
-    anchors[2] = np.setdiff1d(anchors[2], np.concatenate(anchors[:2]))
-    free = np.setdiff1d(np.arange(n**3), np.concatenate(anchors))
+    coords, _, edges, anchors, free = _cube_model(n)
     direct = harmonic_weights(n**3, edges, free, anchors, coords)
-    built = []
-    real = rigid_blend.coarse_space
-    monkeypatch.setattr(rigid_blend, "DIRECT_SOLVE_MAX", 0)
-    monkeypatch.setattr(rigid_blend, "coarse_space", lambda *a: built.append(real(*a)) or built[-1])
+    built = _coarse_spaces_built(monkeypatch)
     iterative = harmonic_weights(n**3, edges, free, anchors, coords)
     assert len(built) == 1 and 8 <= built[0].count <= 64  # 22 nodes a side, cells of 8 edges
     np.testing.assert_allclose(iterative, direct, rtol=0, atol=1e-6)
@@ -317,7 +319,6 @@ def test_the_coarse_space_solve_can_be_cancelled():
 def test_the_coarse_space_needs_no_edge_between_free_nodes(monkeypatch):
     """Free nodes tied only to anchors give no free-free edge to measure the cells by: the
     cells then follow the nodes' extent, and the weights still match the direct solve."""
-    from kneegui.reposition import rigid_blend
     from kneegui.reposition.rigid_blend import harmonic_weights
 
     rng = np.random.default_rng(9)
@@ -326,10 +327,7 @@ def test_the_coarse_space_needs_no_edge_between_free_nodes(monkeypatch):
     free = np.arange(200, 3000)
     edges = np.column_stack([free, rng.integers(0, 200, len(free))])  # each to one anchor
     direct = harmonic_weights(3000, edges, free, anchors, coords)
-    built = []
-    real = rigid_blend.coarse_space
-    monkeypatch.setattr(rigid_blend, "DIRECT_SOLVE_MAX", 0)
-    monkeypatch.setattr(rigid_blend, "coarse_space", lambda *a: built.append(real(*a)) or built[-1])
+    built = _coarse_spaces_built(monkeypatch)
     iterative = harmonic_weights(3000, edges, free, anchors, coords)
     # 2,800 nodes in a 100 mm box: cells of about 57 mm, 8 of them (no cell size: 1 cell)
     assert len(built) == 1 and 4 <= built[0].count <= 27
