@@ -190,12 +190,26 @@ class MainWindow(QMainWindow):
         self._action(edit, "Undo landmark/role edit", self.ws.undo, QKeySequence.StandardKey.Undo)
         self._action(edit, "Redo", self.ws.redo, QKeySequence.StandardKey.Redo)
         tools = mb.addMenu("&Mesh")
+        tools.setToolTipsVisible(True)
         self._action(tools, "Relax and smooth current pose", self.ws.smooth)
         self.rest_export_action = QAction("Show the export when the slider rests", self)
         self.rest_export_action.setCheckable(True)
         self.rest_export_action.setChecked(self.ws.preview.enabled)
         self.rest_export_action.toggled.connect(self.set_rest_export)
         tools.addAction(self.rest_export_action)
+        self.restore_volume_action = QAction(
+            "Restore the soft tissue's volume before relaxing (slower)", self
+        )
+        self.restore_volume_action.setCheckable(True)
+        self.restore_volume_action.setChecked(self.ws.restore_volume)
+        self.restore_volume_action.setToolTip(
+            "The export's volume step (kneegui pose --restore-volume): gives the soft solids "
+            "back their rest volumes before the relaxation. See docs/user-guide.md."
+        )
+        self.restore_volume_action.toggled.connect(
+            lambda on: self.guard(self.ws.set_restore_volume, on)
+        )
+        tools.addAction(self.restore_volume_action)
         self._action(tools, "Ligament lengths vs. flexion", self.ws.compute_ligament_curve)
         view = mb.addMenu("&View")
         toolbar = QToolBar("View", self)

@@ -703,6 +703,8 @@ class ViewIndicator(QLabel):
                 "Export writes it only when forced"
             )
         preview = ws.preview
+        if kind == "as exported" and ws.exported.posed.report.get("volume_correction"):
+            text += " · volume restored before relaxing"
         if kind == "relaxing":
             from app.preview import STAGE_NAMES
 

@@ -314,6 +314,19 @@ class ExportPreview(QObject):
         self.curve_changed.emit()
         self.changed.emit()
 
+    def forget_exports(self) -> None:
+        """The poser's export options changed (not its mapping): the running export and the
+        kept ones are of the old options, so they go; the live curve stays."""
+        self._timer.stop()
+        self._pending = False
+        self.tasks.cancel()
+        self.exported_points.clear()
+        self.kept.clear()
+        self.running_for = None
+        self.error = ""
+        self.curve_changed.emit()
+        self.changed.emit()
+
     def start(self, explicit: bool = False) -> bool:
         """Run the export path on the current angle unless its result is already shown.
 

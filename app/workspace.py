@@ -25,7 +25,7 @@ from PySide6.QtCore import QObject, QTimer, Signal
 
 from app.autosave import AUTOSAVE_DELAY_MS, autosave_path
 from app.heatmaps import HEATMAP_METRICS, heatmap_metrics
-from app.poser import Poser, make_poser
+from app.poser import Poser, make_poser, with_volume_step
 from app.preview import STAGE_NAMES, ExportedPose, ExportPreview, PoseFigures, pose_figures
 from kneegui.errors import GeometryError, KneeguiError, SetupError
 from kneegui.geometry import JointAxes, compute_joint_axes
@@ -114,6 +114,9 @@ class Workspace(QObject):
         self.setup_problem: str | None = None
         self.axes: JointAxes | None = None
         self.poser: Poser | None = None
+        #: the export restores the soft tissue's volume before relaxing (Mesh menu; the CLI's
+        #: ``--restore-volume``)
+        self.restore_volume = False
         self.flexion: float = 0.0
         self.coords: NDArray[np.float64] = np.zeros((0, 3))
         #: the angle last asked for (the live pose or the export may still be on their way)
@@ -397,11 +400,11 @@ class Workspace(QObject):
         if self.tasks.busy:
             self._poser_stale = True
             return
-        model, setup = self.model, self.setup
+        model, setup, restore_volume = self.model, self.setup, self.restore_volume
         self._poser_stale = False
 
         def work(progress, cancelled):
-            poser = make_poser(model, setup, progress, cancelled)
+            poser = make_poser(model, setup, progress, cancelled, restore_volume)
             ligaments = ligament_fibres(model, setup.roles.get("ligament", ()))
             return poser, ligaments
 
@@ -409,6 +412,8 @@ class Workspace(QObject):
             if self.model is not model:
                 return
             self.poser, self.ligaments = result
+            if restore_volume != self.restore_volume:  # switched while it was built
+                self.poser = with_volume_step(self.poser, self.restore_volume)
             self.ligament_curve = None
             self.preview.reset()
             self.preview.start_curve()
@@ -419,6 +424,25 @@ class Workspace(QObject):
             self.status.emit(f"poser ready; initial flexion {self.poser.initial_flexion:.1f}°")
 
         self._start("Preparing the repositioner", work, done)
+
+    def set_restore_volume(self, enabled: bool) -> None:
+        """Switch the export's volume step on or off (``kneegui pose --restore-volume``): the
+        poser shares its precompute with the new setting, the exports kept for the old one
+        are dropped and the export of the current angle runs again."""
+        enabled = bool(enabled)
+        if enabled == self.restore_volume:
+            return
+        self.restore_volume = enabled
+        if self.poser is None:
+            return  # the poser being built reads the setting when it is done
+        self.poser = with_volume_step(self.poser, enabled)
+        self.preview.forget_exports()  # the mapping is the same: no poser_changed
+        self.status.emit(
+            "the export restores the soft tissue's volume before relaxing"
+            if enabled
+            else "the export relaxes the mapping as it is (no volume step)"
+        )
+        self.set_flexion(self.target_flexion, force=True)
 
     def _set_dirty(self, dirty: bool) -> None:
         if dirty != self.setup_dirty:

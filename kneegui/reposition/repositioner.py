@@ -18,6 +18,7 @@ out of the bones); :meth:`Repositioner.pose` (the live slider) skips that.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -117,6 +118,11 @@ PATELLA_LIFT_STEP = 1.0
 #: (:attr:`Repositioner.length_scale`), so a model in metres, or a smaller knee, is posed with
 #: the same relative clearances and tolerances.
 REFERENCE_CONDYLE_RADIUS_MM = 21.9
+
+#: Options read only by the export (:meth:`Repositioner.improve`), after the precompute and the
+#: relaxation's set-up, which they do not change: :meth:`Repositioner.with_options` shares the
+#: precompute when only these change.
+EXPORT_ONLY_OPTIONS = frozenset({"volume_correction"})
 
 #: Depth (in mean condyle radii, about 0.45 mm on the demo) beyond which a soft-tissue node counts
 #: as inside a bone in the pose report: nodes of a sliding interface lie on the surface itself.
@@ -1088,5 +1094,22 @@ class Repositioner:
         return self._overlap_check.measure(bone.transforms)
 
     def with_options(self, **changes: Any) -> Repositioner:
-        """A new repositioner with some options changed (recomputes the precompute)."""
-        return Repositioner(self.model, self.setup, replace(self.options, **changes))
+        """A new repositioner with some options changed.
+
+        It recomputes the precompute, unless every changed option is one only the export reads
+        (:data:`EXPORT_ONLY_OPTIONS`): then it shares this one's precompute and what its exports
+        have built (weights, bone surfaces, the relaxation), so switching the volume step on or
+        off in the window costs nothing (a 1M-element model's precompute and relaxation set-up
+        take about 20 s). Either way it poses exactly as a repositioner built with those
+        options (the same bits); this one is not changed.
+        """
+        options = replace(self.options, **changes)
+        if not set(changes) <= EXPORT_ONLY_OPTIONS:
+            return Repositioner(self.model, self.setup, options)
+        twin = copy.copy(self)
+        twin.options = options
+        # what the twin fills in from now on is its own
+        twin.timings_s = dict(self.timings_s)
+        twin._lifts = dict(self._lifts)
+        twin._volume_correction = None  # built for the twin's own options on first use
+        return twin

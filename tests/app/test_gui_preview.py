@@ -289,6 +289,49 @@ def test_back_at_an_exported_angle_the_view_shows_its_export_without_solving_aga
     assert not ws.preview.kept
 
 
+def test_restore_volume_switch_reexports_with_the_volume_step_and_writes_it(
+    demo_window, qtbot, tmp_path, counted_exports
+):
+    """Mesh > Restore the soft tissue's volume: the poser keeps its precompute, the shown
+    export runs again with the volume step (its report says so, as ``kneegui pose
+    --restore-volume``'s does), Export writes that one without solving again, and switching
+    it off brings back the plain export."""
+    ws = demo_window.ws
+    demo_window.set_rest_export(True)
+    demo_window.flexion_panel.slider.setValue(600)
+    wait_idle(qtbot, ws)
+    assert ws.view_kind == "as exported"
+    plain = np.array(ws.exported.coords)
+    assert ws.exported.posed.report["volume_correction"] is None
+    weights = ws.poser._weights
+    counted_exports.clear()
+    demo_window.restore_volume_action.trigger()
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert ws.restore_volume and ws.poser._weights is weights  # no second precompute
+    assert counted_exports == [(60.0, "done")]
+    assert ws.view_kind == "as exported"
+    step = ws.exported.posed.report["volume_correction"]
+    assert step is not None and step["aimed"] > 0 and step["largest_move"] > 0
+    restored = np.array(ws.exported.coords)
+    assert np.abs(restored - plain).max() > 1e-3
+    demo_window.indicator.refresh()
+    assert demo_window.indicator.text().endswith(" · volume restored before relaxing")
+    assert list(ws.preview.kept) == [60.0]  # the plain export is not kept for this poser
+    out = tmp_path / "restored.k"
+    assert ws.export(out)
+    wait_idle(qtbot, ws)
+    assert demo_window.last_error is None, demo_window.last_error
+    assert counted_exports == [(60.0, "done")]  # written as shown
+    np.testing.assert_allclose(read_deck(out).coords, restored, rtol=0, atol=1e-6)
+    demo_window.restore_volume_action.trigger()
+    wait_idle(qtbot, ws)
+    assert not ws.restore_volume and ws.exported.posed.report["volume_correction"] is None
+    demo_window.indicator.refresh()
+    assert "volume restored" not in demo_window.indicator.text()
+    np.testing.assert_array_equal(ws.exported.coords, plain)
+
+
 def test_kept_exports_stay_within_their_count_and_node_budget(monkeypatch):
     from app import preview
 

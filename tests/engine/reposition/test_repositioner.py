@@ -226,3 +226,36 @@ def test_left_leg_is_untangled_as_well():
     result = rep.pose_detailed(90.0)
     assert compute_quality(result.coords, leg.model.blocks).n_inverted == 0
     assert abs(result.achieved_flexion_deg - 90.0) < 0.1
+
+
+def test_volume_step_switched_on_shares_the_precompute_and_poses_as_built_with_it(
+    small_leg, small_setup, small_repositioner
+):
+    """``with_options(volume_correction=...)``, the window's switch: the twin shares the weights
+    (no second precompute), runs the volume step and exports exactly what a repositioner built
+    with the step exports; the original still exports without it, as before."""
+    from kneegui.meshopt.volume_correction import VolumeCorrectionOptions
+    from kneegui.reposition.pipeline import pose_model
+
+    before = pose_model(small_repositioner, 60.0)
+    twin = small_repositioner.with_options(volume_correction=VolumeCorrectionOptions())
+    assert twin._weights is small_repositioner._weights
+    assert small_repositioner.options.volume_correction is None
+    built = Repositioner(
+        small_leg.model, small_setup, RepositionOptions(volume_correction=VolumeCorrectionOptions())
+    )
+    posed = pose_model(twin, 60.0)
+    assert posed.report["volume_correction"]["aimed"] > 0
+    np.testing.assert_array_equal(posed.model.coords, pose_model(built, 60.0).model.coords)
+    again = pose_model(small_repositioner, 60.0)
+    assert again.report["volume_correction"] is None
+    np.testing.assert_array_equal(again.model.coords, before.model.coords)
+    # switched off again: the twin of the twin poses as the original
+    off = twin.with_options(volume_correction=None)
+    np.testing.assert_array_equal(pose_model(off, 60.0).model.coords, before.model.coords)
+
+
+def test_options_read_by_the_precompute_still_recompute_it(small_repositioner):
+    """Any other option builds a new repositioner (its weights are its own)."""
+    other = small_repositioner.with_options(regularisation=2e-4)
+    assert other._weights is not small_repositioner._weights
