@@ -146,6 +146,14 @@ class RelaxOptions:
         20k demo at 120 deg: 12 rounds instead of 7) and ran out of them at 177k.
     slow_rings : int
         Mesh edges around the inverted corners' nodes that the slow pass moves.
+    slow_pass_nodes : int
+        The slow pass runs only when it would move at most this many nodes (its cost is its
+        nodes times its rounds, and it starts them again from the pose): on the coarse and
+        177k demos it moved 1,367-2,253 nodes and was kept in two of four measured cells (the
+        leg built at 20 deg and the welded joint at 120 deg); on the 1M demo at 90 deg it moved
+        15,259 nodes through 55 rounds, about 35 s of the export, and was not kept in either
+        measured run (docs/repositioning.md). Left out, the pose is the first pass's to the
+        bit.
     slide_skin : bool or None
         Skin nodes move only in the tangent plane of the pose being relaxed (the sliding nodes
         given to :class:`ElasticRelaxation`; ``None`` slides them there too).
@@ -177,6 +185,7 @@ class RelaxOptions:
     stall_rounds: int = 4
     slow_eps_decrease: float = 0.3
     slow_rings: int = 10
+    slow_pass_nodes: int = 8000
     slide_skin: bool | None = None
 
     def __post_init__(self) -> None:
@@ -204,6 +213,10 @@ class RelaxOptions:
             raise ValueError(
                 "RelaxOptions needs slow_eps_decrease in [0, 1) (0: no slow pass) and"
                 f" slow_rings >= 1, not {self.slow_eps_decrease} and {self.slow_rings}"
+            )
+        if self.slow_pass_nodes < 1:
+            raise ValueError(
+                f"RelaxOptions.slow_pass_nodes must be >= 1, not {self.slow_pass_nodes}"
             )
 
     def scaled(self, length: float) -> RelaxOptions:
@@ -243,8 +256,10 @@ class RelaxReport:
     region_seconds: float = 0.0  # finding the degraded region (part of ``seconds``)
     history: list[dict[str, float]] = field(default_factory=list)
     quality: QualityOptimisationReport | None = None  # what the quality optimisation did
-    #: the slow pass around what stayed inverted (``RelaxOptions.slow_eps_decrease``), if it ran:
-    #: its nodes, rounds, the inverted corners before and after it, and whether it was kept
+    #: the slow pass around what stayed inverted (``RelaxOptions.slow_eps_decrease``), when
+    #: corners stayed inverted: its nodes, whether it ran (not beyond
+    #: ``RelaxOptions.slow_pass_nodes``), its rounds, the inverted corners before and after it,
+    #: and whether it was kept
     slow_pass: dict[str, float | int | bool] | None = None
 
     def to_dict(self) -> dict[str, object]:

@@ -1115,10 +1115,24 @@ class ElasticRelaxation:
         ``eps`` falling more slowly (:class:`RelaxOptions`); the rest of the region keeps
         ``x``. Returns whichever of the two leaves fewer corners of the region inverted (then
         the larger smallest det J), and records the pass in ``report.slow_pass`` (its rounds are
-        not counted in ``report.rounds``, which are the first pass's)."""
+        not counted in ``report.rounds``, which are the first pass's). Beyond
+        ``slow_pass_nodes`` it does not run and ``x`` is returned as it is."""
         opt = self.options
         stuck = whole.nodes[self._stuck_nodes(whole, det)]
         region = self._within_rings(stuck, opt.slow_rings, whole.nodes[whole.free])
+        before = (int(np.sum(det <= 0)), -float(det.min()))
+        if len(region) > opt.slow_pass_nodes:
+            report.slow_pass = {
+                "nodes": len(region),
+                "ran": False,
+                "rounds": 0,
+                "restarts": 0,
+                "iterations": 0,
+                "inverted_corners_before": before[0],
+                "inverted_corners_after": before[0],
+                "kept": False,
+            }
+            return x, -before[1]
         start = x.copy()
         start[region] = pose[region]
         second = RelaxReport()
@@ -1131,11 +1145,11 @@ class ElasticRelaxation:
             start, region, transforms, optimise_next, second, progress, should_cancel, slow, skip
         )
         _, _, det_slow = whole.energy(x_slow[whole.nodes], 1e-9)
-        before = (int(np.sum(det <= 0)), -float(det.min()))
         after = (int(np.sum(det_slow <= 0)), -float(det_slow.min()))
         kept = after < before
         report.slow_pass = {
             "nodes": len(region),
+            "ran": True,
             "rounds": second.rounds,
             "restarts": second.restarts,
             "iterations": second.iterations,

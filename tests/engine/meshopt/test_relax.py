@@ -557,11 +557,32 @@ def test_a_slow_pass_around_what_stays_inverted_is_kept_only_when_it_leaves_fewe
     np.testing.assert_array_equal(x_worse, x_fast)
 
 
+def test_no_slow_pass_over_more_nodes_than_it_is_for():
+    """``slow_pass_nodes``: a slow pass that would move more nodes than that does not run (the
+    1M demo's: 15,259 nodes, 55 rounds, never kept); the report says so and the first pass's
+    result is handed on to the bit. At its size exactly it runs."""
+    coords, blocks, free, tangled = _block_with_a_node_held_outside((0.0, 30.0, 0.0))
+    fast = relaxation(coords, blocks, free, stall_rounds=100, slow_eps_decrease=0.0)
+    x_fast, first = fast.relax(tangled)
+    size = relaxation(coords, blocks, free, stall_rounds=100).relax(tangled)[1].slow_pass["nodes"]
+    assert size >= 2 and first.inverted_corners_after > 0
+    capped = relaxation(coords, blocks, free, stall_rounds=100, slow_pass_nodes=size - 1)
+    x_capped, report = capped.relax(tangled)
+    assert report.slow_pass["ran"] is False and report.slow_pass["nodes"] == size
+    assert report.slow_pass["rounds"] == 0 and not report.slow_pass["kept"]
+    assert report.inverted_corners_after == first.inverted_corners_after
+    np.testing.assert_array_equal(x_capped, x_fast)
+    at = relaxation(coords, blocks, free, stall_rounds=100, slow_pass_nodes=size)
+    assert at.relax(tangled)[1].slow_pass["ran"] is True
+
+
 def test_relax_options_reject_a_slow_pass_out_of_range():
     with pytest.raises(ValueError, match="slow_eps_decrease"):
         RelaxOptions(slow_eps_decrease=1.0)
     with pytest.raises(ValueError, match="slow_rings"):
         RelaxOptions(slow_rings=0)
+    with pytest.raises(ValueError, match="slow_pass_nodes"):
+        RelaxOptions(slow_pass_nodes=0)
 
 
 def test_an_attempt_that_stops_freeing_corners_goes_on_to_the_restart():
