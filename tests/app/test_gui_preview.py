@@ -332,6 +332,19 @@ def test_restore_volume_switch_reexports_with_the_volume_step_and_writes_it(
     np.testing.assert_array_equal(ws.exported.coords, plain)
 
 
+def test_restore_volume_switched_while_a_deck_opens_reaches_its_poser(window, qtbot, leg_files):
+    """Switched on while the deck is still being read (no poser yet): the poser that arrives
+    has the volume step."""
+    deck, setup = leg_files
+    window.open_deck(deck, setup)
+    window.restore_volume_action.setChecked(True)  # before the poser is ready
+    qtbot.waitUntil(lambda: window.ws.poser is not None, timeout=60000)
+    wait_idle(qtbot, window.ws)
+    assert window.last_error is None, window.last_error
+    assert window.ws.restore_volume
+    assert window.ws.poser.options.volume_correction is not None
+
+
 def test_kept_exports_stay_within_their_count_and_node_budget(monkeypatch):
     from app import preview
 
