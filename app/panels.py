@@ -666,6 +666,19 @@ class ViewIndicator(QLabel):
             return None
         return None if exported.posed.passes_gate else list(exported.posed.gate_reasons)
 
+    def _volume_hint(self) -> str:
+        """A pointer to the volume step when the shown export left movable elements inverted
+        without it (it freed the 177k demo's crease; it does not free every deck)."""
+        exported = self.ws.exported
+        inverted = (exported.posed.report.get("inverted") or {}) if exported else {}
+        if self.ws.restore_volume or not inverted.get("movable"):
+            return ""
+        return (
+            "\n\nMovable elements stay inverted: Mesh > Restore the soft tissue's volume before "
+            "relaxing may free them (it did on the 177k demo, not on the welded joint); compare "
+            "the figures both ways."
+        )
+
     def refresh(self) -> None:
         ws = self.ws
         kind = ws.view_kind
@@ -682,6 +695,7 @@ class ViewIndicator(QLabel):
         self.setToolTip(
             "The export fails the quality gate (File > Export writes it only when forced):\n"
             + "\n".join(f"- {r}" for r in reasons)
+            + self._volume_hint()
             if reasons
             else ""
         )

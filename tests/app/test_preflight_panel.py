@@ -115,6 +115,13 @@ def test_an_export_that_fails_the_gate_says_so_in_the_banner(welded_window, qtbo
     assert INDICATOR_STYLES["fails the gate"][0] in indicator.styleSheet()
     for reason in report["gate"]["reasons"]:
         assert reason in indicator.toolTip()
+    # movable elements inverted without the volume step: the tooltip points at it
+    assert "Mesh > Restore the soft tissue's volume before relaxing" in indicator.toolTip()
+    ws.restore_volume = True  # (the switch itself is tested in test_gui_preview.py)
+    indicator.refresh()
+    assert "Restore the soft tissue's volume" not in indicator.toolTip()
+    ws.restore_volume = False
+    indicator.refresh()
     # the quality panel splits them too and marks the locked ones among the worst elements
     panel = win.quality_panel
     panel.refresh()
