@@ -303,16 +303,9 @@ class ExportPreview(QObject):
 
     def reset(self) -> None:
         """A new model or poser: forget the curve and the exported points."""
-        self._timer.stop()
-        self._pending = self._curve_pending = False
-        self.tasks.cancel()
+        self._curve_pending = False
         self.live_curve = None
-        self.exported_points.clear()
-        self.kept.clear()
-        self.running_for = None
-        self.error = ""
-        self.curve_changed.emit()
-        self.changed.emit()
+        self.forget_exports()
 
     def forget_exports(self) -> None:
         """The poser's export options changed (not its mapping): the running export and the
