@@ -668,15 +668,15 @@ class ViewIndicator(QLabel):
 
     def _volume_hint(self) -> str:
         """A pointer to the volume step when the shown export left movable elements inverted
-        without it (it freed the 177k demo's crease; it does not free every deck)."""
+        without it (it freed the 177k demo's crease, not the welded joint's elements)."""
         exported = self.ws.exported
         inverted = (exported.posed.report.get("inverted") or {}) if exported else {}
         if self.ws.restore_volume or not inverted.get("movable"):
             return ""
         return (
             "\n\nMovable elements stay inverted: Mesh > Restore the soft tissue's volume before "
-            "relaxing may free them (it did on the 177k demo, not on the welded joint); compare "
-            "the figures both ways."
+            "relaxing may free them. It does on some decks and not on others (and it takes "
+            "longer), so compare the figures both ways."
         )
 
     def refresh(self) -> None:
