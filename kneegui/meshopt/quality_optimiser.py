@@ -78,6 +78,12 @@ ProgressCallback = Callable[[float, str], None]
 ConstraintCallback = Callable[[NDArray[np.float64]], tuple[NDArray, ...]]
 
 
+#: How far (in log units: a relative 1e-9) a settling floor set at the worst solid now lies
+#: below it (:attr:`QualityOptions.settling_floors`), so that rounding cannot put the start
+#: below its own floor.
+FLOOR_ROUNDING_MARGIN = 1e-9
+
+
 def with_partners(
     constraints: tuple[NDArray, ...],
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
@@ -1557,8 +1563,12 @@ def optimise_quality(
         the free nodes now."""
         worst = worst_solids()
         if opt.settling_floors is not None:
+            # at the worst itself, the start would sit on its own floor: measured here as a
+            # ratio and in the line search as a difference of logs, it passes or not on the
+            # last bit, and a start below its floor moves nothing
             return tuple(
-                float(np.log(min(f, w))) for f, w in zip(opt.settling_floors, worst, strict=True)
+                float(np.log(min(f, w))) - FLOOR_ROUNDING_MARGIN
+                for f, w in zip(opt.settling_floors, worst, strict=True)
             )
         return tuple(float(np.log(opt.settling_floor * w)) for w in worst)
 

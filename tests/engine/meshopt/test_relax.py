@@ -9,7 +9,12 @@ import kneegui.reposition.relax as relax_module
 from kneegui.errors import Cancelled, GeometryError
 from kneegui.geometry.transforms import RigidTransform
 from kneegui.meshopt.lbfgs import minimize_lbfgs, round_monitor
-from kneegui.meshopt.quality_optimiser import QualityOptions, optimise_quality, quality_aims
+from kneegui.meshopt.quality_optimiser import (
+    QualityOptimisationReport,
+    QualityOptions,
+    optimise_quality,
+    quality_aims,
+)
 from kneegui.model import ElementBlock
 from kneegui.quality import compute_quality
 from kneegui.quality.kernels import corner_determinants
@@ -648,6 +653,128 @@ def test_the_quality_stage_brings_tissue_out_of_a_bone_around_elements_left_inve
     monkeypatch.setattr(relax_module, "optimise_quality", spy)
     rx.optimise(pose, transforms, QualityOptions(rounds=15, gate_rounds=4), _ignore, None)
     assert [(o.rounds, o.gate_rounds) for o in seen] == [(15, 0), (15, 0)]
+
+
+def _two_nodes_in_bones(box_surface, tangle: bool):
+    """A 10-cube block with two nodes 2 deep in two box bones, one near a corner of the block
+    and one far from it, in groups that no element ties together; with ``tangle``, two held
+    nodes near the first swapped, so that their hexes stay inverted. Returns the relaxation,
+    the pose, the two nodes, the boxes, the bones' transforms and the contact constraints."""
+    coords, blocks, boundary, node = hex_block(10)
+    a, b = node(1, 1, 1), node(2, 1, 1)
+    free = np.setdiff1d(np.arange(len(coords)), np.union1d(boundary, [a, b]))
+    near, far = node(3, 3, 3), node(9, 9, 9)
+    lo, hi = np.array([-4.0, -4.0, 1.0]), np.array([4.0, 4.0, 9.0])  # no node inside at rest
+    boxes = {"tibia": (coords[near] + lo, coords[near] + hi)}
+    boxes["femur"] = (coords[far] + lo, coords[far] + hi)
+    rx = ElasticRelaxation(
+        coords,
+        corner_tetrahedra(blocks, {"hex8": np.ones(len(blocks["hex8"].ids), bool)}),
+        free,
+        bones={name: box_surface(*box) for name, box in boxes.items()},
+        blocks=blocks,
+        aims=quality_aims(compute_quality(coords, blocks), blocks),
+    )
+    pose = coords.copy()
+    if tangle:
+        pose[a], pose[b] = coords[b], coords[a]
+    pose[[near, far], 2] += 3.0  # 2 deep, and the hexes above each 0.7 of their height
+    transforms = {name: RigidTransform.identity() for name in boxes}
+    contact = rx.contact_nodes[np.isin(rx.contact_nodes, [near, far])]
+    assert len(contact) == 2
+
+    def constraints(x):
+        which, normals, offsets, _ = rx._contact_planes(x, contact, transforms, None, chords=False)
+        return contact[which], normals, offsets
+
+    return rx, pose, (near, far), boxes, transforms, contact, constraints
+
+
+def _depth_in_box(point, box):
+    lo, hi = box
+    return float(np.min(np.minimum(point - lo, hi - point)))  # > 0 inside
+
+
+def test_settling_in_the_bones_moves_when_its_floor_is_the_worst_solid(box_surface):
+    """The settling of the nodes left in a bone may take no solid below the worst there now.
+    That floor was the worst itself, measured as a ratio, and the line search measures it as
+    a difference of logs: on the last bit the start lay below its own floor, and nothing moved
+    (here: both nodes stayed 2 deep). The floor now lies a relative 1e-9 below it."""
+    rx, pose, sunk, boxes, transforms, contact, constraints = _two_nodes_in_bones(
+        box_surface, tangle=False
+    )
+    options = QualityOptions()
+    out, settled = rx._settle_in_bones(
+        pose, transforms, contact, constraints, options, QualityOptimisationReport(), None
+    )
+    for node_, box in zip(sunk, boxes.values(), strict=True):
+        assert _depth_in_box(out[node_], box) < 0.2 * options.constraint_tolerance
+    assert settled.bone_settled_nodes > 0
+    # no solid below the worst there was
+    worst = compute_quality(pose, rx.blocks).worst_jacobian()
+    assert compute_quality(out, rx.blocks).worst_jacobian() >= worst - 1e-6
+
+
+def test_settling_in_the_bones_holds_the_inverted_elements_and_settles_each_group_apart(
+    box_surface,
+):
+    """One node in a bone near an element the untangling left inverted used to stop the
+    settling of every node: the inverted element's nodes were among those moving, which the
+    stage refuses. Now they are held, and each group of nodes that no element or constraint
+    ties to another is settled apart (a group the floor holds does not hold the others): a
+    node near the tangle and one far from it both come out, and the held nodes stay."""
+    rx, pose, sunk, boxes, transforms, contact, constraints = _two_nodes_in_bones(
+        box_surface, tangle=True
+    )
+    held = rx.inverted_element_nodes(pose)
+    assert len(held) and not np.isin(sunk, held).any()
+    options = QualityOptions()
+    out, settled = rx._settle_in_bones(
+        pose, transforms, contact, constraints, options, QualityOptimisationReport(), None, held
+    )
+    for node_, box in zip(sunk, boxes.values(), strict=True):
+        assert _depth_in_box(out[node_], box) < 0.2 * options.constraint_tolerance
+    np.testing.assert_array_equal(out[held], pose[held])
+    assert settled.bone_settled_nodes > 0
+    groups = rx._coupled_groups(pose, np.array(sunk), constraints)
+    assert sorted(map(len, groups)) == [1, 1]
+    near_pair = np.array([sunk[0], sunk[0] + 1])  # one hex holds both
+    assert [len(g) for g in rx._coupled_groups(pose, near_pair, constraints)] == [2]
+
+
+def test_a_settling_group_held_by_a_nearly_flat_solid_is_settled_again_without_it(
+    monkeypatch, box_surface
+):
+    """A group whose settling brings its deepest node out by less than the tolerance (a nearly
+    flat solid holds its line search: the 1M demo's crease, corner Jacobian 1e-5) is settled
+    again with the nodes of the solids below 0.05 and one ring around them held, in place of
+    that attempt. The stall is played here by the stage itself: it moves nothing while such a
+    node is free."""
+    rx, pose, sunk, boxes, transforms, contact, constraints = _two_nodes_in_bones(
+        box_surface, tangle=False
+    )
+    near = sunk[0]
+    squeezed = near + 3 * 11  # node (3, 6, 3): three cells from the sunk node
+    pose[squeezed, 1] -= 9.7  # the hexes below it 0.3 of their height at it: nearly flat
+    flat = rx.flat_element_nodes(pose, relax_module.TANGLE_FLAT_BELOW)
+    assert squeezed in flat and near not in flat
+    calls = []
+
+    def stalls_on_flat(x, blocks, free, *args, **kwargs):
+        calls.append(np.isin(flat, free).any())
+        if calls[-1]:
+            return x.copy(), QualityOptimisationReport()
+        return optimise_quality(x, blocks, free, *args, **kwargs)
+
+    monkeypatch.setattr(relax_module, "optimise_quality", stalls_on_flat)
+    options = QualityOptions()
+    out, settled = rx._settle_in_bones(
+        pose, transforms, contact, constraints, options, QualityOptimisationReport(), None
+    )
+    assert calls[0] and not calls[1]  # the stalled attempt, then without the flat solids
+    assert _depth_in_box(out[near], boxes["tibia"]) < 0.2 * options.constraint_tolerance
+    np.testing.assert_array_equal(out[flat], pose[flat])
+    assert settled.bone_settled_nodes > 0
 
 
 def _ignore(fraction, message):
