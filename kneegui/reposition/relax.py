@@ -1787,35 +1787,40 @@ class ElasticRelaxation:
         region_seconds = time.perf_counter() - t
         settled_nodes = 0
         out = x
+
+        def keep(
+            attempt: tuple[NDArray[np.float64], QualityOptimisationReport, float],
+            nodes: NDArray[np.int64],
+        ) -> None:
+            nonlocal out, report, settled_nodes, region_seconds
+            out, settled_nodes = attempt[0], settled_nodes + len(nodes)
+            report = report.with_pass(attempt[1], region_seconds, bone_settled_nodes=settled_nodes)
+            region_seconds = 0.0
+
         flat: NDArray[np.int64] | None = None
         for part in self._coupled_groups(x, free, around):
             if not np.isin(deep, part).any():
                 continue
             tried = settle_group(out, part)
-            if tried is None or tried[2] < options.constraint_tolerance:
-                # stalled: a nearly flat solid holds the group's line search (any step of its
-                # nodes takes it below its floor): again with its nodes and one ring held
-                if flat is None:
-                    flat = self.flat_element_nodes(x, TANGLE_FLAT_BELOW, cancel)
-                    flat = np.union1d(flat, self._within_rings(flat, 1, self.free))
-                rest = np.setdiff1d(part, flat, assume_unique=True)
-                if 0 < len(rest) < len(part):  # in place of the stalled attempt
-                    for sub in self._coupled_groups(out, rest, around):
-                        if not np.isin(deep, sub).any():
-                            continue
-                        again = settle_group(out, sub)
-                        if again is not None and again[2] > 0:
-                            out, settled_nodes = again[0], settled_nodes + len(sub)
-                            report = report.with_pass(
-                                again[1], region_seconds, bone_settled_nodes=settled_nodes
-                            )
-                            region_seconds = 0.0
-                    continue
-            if tried is None or tried[2] <= 0:
+            if tried is not None and tried[2] >= options.constraint_tolerance:
+                keep(tried, part)
                 continue
-            out, settled_nodes = tried[0], settled_nodes + len(part)
-            report = report.with_pass(tried[1], region_seconds, bone_settled_nodes=settled_nodes)
-            region_seconds = 0.0
+            # stalled: a nearly flat solid holds the group's line search (any step of its nodes
+            # takes it below its floor): again, in place of this attempt, with its nodes and
+            # one ring around them held
+            if flat is None:
+                flat = self.flat_element_nodes(x, TANGLE_FLAT_BELOW, cancel)
+                flat = np.union1d(flat, self._within_rings(flat, 1, self.free))
+            rest = np.setdiff1d(part, flat, assume_unique=True)
+            if not 0 < len(rest) < len(part):  # no such solid there, or nothing else
+                if tried is not None and tried[2] > 0:
+                    keep(tried, part)
+                continue
+            for sub in self._coupled_groups(out, rest, around):
+                if np.isin(deep, sub).any():
+                    again = settle_group(out, sub)
+                    if again is not None and again[2] > 0:
+                        keep(again, sub)
         return out, report
 
     def _coupled_groups(
@@ -1826,7 +1831,9 @@ class ElasticRelaxation:
     ) -> list[NDArray[np.int64]]:
         """``free`` split into groups that no element and no constraint (at ``x``) ties
         together: each group's problem is apart from the others', and solved apart its line
-        search is not held by another group's elements."""
+        search is not held by another group's elements. Elements, not the corner edges of
+        ``_adjacency``: two free nodes of one element are tied through its measures even where
+        no free node joins them along an edge."""
         n = len(free)
         if n == 0:
             return []
