@@ -160,6 +160,12 @@ class RelaxOptions:
         :class:`kneegui.reposition.Repositioner` resolves ``None`` by method: it slides
         the skin for ``blend``, whose skin is the mapped surface, and frees it for ``paper``,
         whose contour-placed skin can fold and must be free to unfold (docs/repositioning.md).
+    skin_outward : bool
+        A sliding skin node may also leave its tangent plane outwards, never inwards: a
+        one-sided plane on it (stiff as the bone contact) instead of the projection onto the
+        plane. The flesh pressed together behind a flexed knee pushes the skin out instead of
+        being crushed under it or pressed into a bone (the 1M demo at 90 deg: 1 soft-tissue
+        node past the tolerance in a bone instead of 114; docs/repositioning.md).
     """
 
     volume_weight: float = 0.5
@@ -187,6 +193,7 @@ class RelaxOptions:
     slow_rings: int = 10
     slow_pass_nodes: int = 8000
     slide_skin: bool | None = None
+    skin_outward: bool = True
 
     def __post_init__(self) -> None:
         if not 0 <= self.volume_weight <= 1:

@@ -18,10 +18,11 @@ the bones (and the tissue attached to them) held where the kinematics put them:
   force stops growing 1 mm deep in the energy, a constraint in the quality optimisation), with
   the planes recomputed from the bone surfaces between rounds, so tissue slides along a condyle
   instead of entering it;
-- the skin: sliding in its tangent planes during the untangling (``RelaxOptions.slide_skin``),
-  and its contours kept in order (``contour_margin``) in the untangling as well as in the
-  quality optimisation, so that the energy's shape terms, not the optimiser's penalties, carry
-  back the contours the mapping crossed.
+- the skin: held to its tangent planes during the untangling (``RelaxOptions.slide_skin``),
+  which it may leave outwards only (``RelaxOptions.skin_outward``), and its contours kept in
+  order (``contour_margin``) in the untangling as well as in the quality optimisation, so that
+  the energy's shape terms, not the optimiser's penalties, carry back the contours the mapping
+  crossed.
 
 Element count, node ids and connectivity never change; only the free nodes move.
 """
@@ -656,6 +657,7 @@ class ElasticRelaxation:
         self.is_skin = np.zeros(n, dtype=bool)
         self.is_skin[sliding.astype(np.int64)] = True
         self.sliding = np.intersect1d(sliding.astype(np.int64), self.free)
+        self._quad_outward = self._outward_quad_signs()
         # tissue next to an attachment may go as deep into another bone as the attachment
         # itself (a patella pressed into the trochlea): holding it out would tear the elements
         # between the attachment and the contact plane
@@ -1078,6 +1080,7 @@ class ElasticRelaxation:
             )
             skip = self.locked_corners(x)
             report.locked_corners = len(skip)
+            skin = self.skin_outward_planes(pose)
             x, d_min, whole, det = self._minimise_energy(
                 x,
                 free,
@@ -1088,11 +1091,12 @@ class ElasticRelaxation:
                 cancel,
                 skip=skip,
                 untangled=untangled,
+                skin=skin,
             )
             if d_min <= 0 and self.options.slow_eps_decrease > 0:
                 x, d_min = self._slow_pass(
                     pose, x, whole, det, contact_transforms, optimise_next, report, progress,
-                    cancel, skip,
+                    cancel, skip, skin,
                 )  # fmt: skip
         x = self.carry_midside(coords, x)
         return self.midside_out_of_bones(x, transforms if use_contact else None), report, d_min > 0
@@ -1109,6 +1113,7 @@ class ElasticRelaxation:
         report_progress: ProgressCallback,
         should_cancel: Callable[[], bool],
         skip: NDArray[np.int64] | None = None,
+        skin: tuple[NDArray, NDArray, NDArray] | None = None,
     ) -> tuple[NDArray[np.float64], float]:
         """The last pass when the rounds and restarts left corners inverted at ``x`` (``det``
         over the corners of their region's energy ``whole``, as :meth:`_minimise_energy`
@@ -1118,7 +1123,8 @@ class ElasticRelaxation:
         ``x``. Returns whichever of the two leaves fewer corners of the region inverted (then
         the larger smallest det J), and records the pass in ``report.slow_pass`` (its rounds are
         not counted in ``report.rounds``, which are the first pass's). Beyond
-        ``slow_pass_nodes`` it does not run and ``x`` is returned as it is."""
+        ``slow_pass_nodes`` it does not run and ``x`` is returned as it is. ``skin``: the
+        first pass's one-sided skin planes (:meth:`skin_outward_planes`)."""
         opt = self.options
         stuck = whole.nodes[self._stuck_nodes(whole, det)]
         region = self._within_rings(stuck, opt.slow_rings, whole.nodes[whole.free])
@@ -1144,8 +1150,9 @@ class ElasticRelaxation:
 
         slow = replace(opt, eps_decrease=opt.slow_eps_decrease)
         x_slow, _, _, _ = self._minimise_energy(
-            start, region, transforms, optimise_next, second, progress, should_cancel, slow, skip
-        )
+            start, region, transforms, optimise_next, second, progress, should_cancel, slow, skip,
+            skin=skin,
+        )  # fmt: skip
         _, _, det_slow = whole.energy(x_slow[whole.nodes], 1e-9)
         after = (int(np.sum(det_slow <= 0)), -float(det_slow.min()))
         kept = after < before
@@ -1179,6 +1186,7 @@ class ElasticRelaxation:
         options: RelaxOptions | None = None,
         skip: NDArray[np.int64] | None = None,
         untangled: Callable[[NDArray[np.float64]], None] | None = None,
+        skin: tuple[NDArray, NDArray, NDArray] | None = None,
     ) -> tuple[NDArray[np.float64], float, FoldoverEnergy, NDArray[np.float64]]:
         """The energy's rounds (and restarts) over the region ``free``, with contact when
         ``transforms`` are given, ending as soon as nothing is inverted when the quality
@@ -1186,8 +1194,11 @@ class ElasticRelaxation:
         the smallest corner det J, the region's energy and its corners' det J at the end (what
         the slow pass starts from). ``options`` replaces the relaxation's own for this run (the
         slow pass's schedule). The corners ``skip`` (:meth:`locked_corners`) are left out.
-        ``untangled``: as :meth:`untangle`'s."""
+        ``untangled``: as :meth:`untangle`'s. ``skin``: one-sided planes (global ``nodes,
+        normals, offsets``, :meth:`skin_outward_planes`) held like the bone contact."""
         opt = options or self.options
+        if skin is None:
+            skin = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0))
         whole = sub = self.energy(free, should_cancel, skip)
         raise_if_cancelled(should_cancel, "relaxation cancelled")
         x_start = x.copy()  # the pose: where a restart puts stuck nodes back
@@ -1271,7 +1282,7 @@ class ElasticRelaxation:
             for rnd in range(opt.max_rounds):
                 if should_cancel():
                     raise Cancelled("relaxation cancelled")
-                if len(contact_global) or order is not None or len(self._pinned[0]):
+                if len(contact_global) or order is not None or len(self._pinned[0]) or len(skin[0]):
                     x[sub.nodes] = xl
                     parts = []
                     if len(contact_global):
@@ -1288,6 +1299,10 @@ class ElasticRelaxation:
                     # bones alone shape pulled the tissue around them apart); a plane on their
                     # free node asks them positive, softly, like the bone contact
                     parts.append(self._pinned_planes(x, is_sub_free))
+                    # the skin may bulge out where the flesh under it is pressed together (the
+                    # crease behind a flexed knee), never fold in (RelaxOptions.skin_outward)
+                    keep = is_sub_free[skin[0]]
+                    parts.append((skin[0][keep], skin[1][keep], skin[2][keep]))
                     c_global, c_normals, c_offsets = (
                         np.concatenate(p) for p in zip(*parts, strict=True)
                     )
@@ -1491,26 +1506,82 @@ class ElasticRelaxation:
         is_free[sub.free] = True
         return bad[is_free[bad]]
 
+    def _outward_quad_signs(self) -> NDArray[np.float64]:
+        """Per quad, +1 where its node order's normal points away from the solids under it
+        at rest, -1 where it points into them (a deck's shells need not be oriented alike):
+        the side of the quad's centroid from the mean of its nodes' neighbours off the shells.
+        +1 where no such neighbour tells."""
+        quads = self.quads
+        if len(quads) == 0:
+            return np.ones(0)
+        on_shell = np.zeros(self.n_nodes, dtype=bool)
+        on_shell[quads.ravel()] = True
+        nodes = sorted_unique(quads.ravel())
+        # each shell node's neighbours off the shells (the rows of the shell nodes alone: a
+        # whole-body model's adjacency has tens of millions of entries)
+        pairs = self._adjacency[nodes].tocoo()
+        off = ~on_shell[pairs.col]
+        row, col = pairs.row[off], pairs.col[off]
+        count = np.bincount(row, minlength=len(nodes))
+        total = np.zeros((len(nodes), 3))
+        np.add.at(total, row, self.rest[col])
+        local = np.searchsorted(nodes, quads)
+        p = self.rest[quads]
+        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+        n_inner = count[local].sum(axis=1)
+        below = total[local].sum(axis=1) / np.maximum(n_inner, 1)[:, None]
+        side = np.einsum("ij,ij->i", normal, p.mean(axis=1) - below)
+        return np.where((n_inner > 0) & (side < 0), -1.0, 1.0)
+
+    def _skin_normals(
+        self, x: NDArray[np.float64], nodes: NDArray[np.int64]
+    ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        """Unit outward surface normals at ``x`` of ``nodes`` (area-weighted over the quads
+        around each, :meth:`_outward_quad_signs`); which have one, and those normals."""
+        p = x[self.quads]
+        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])  # twice the area
+        normal *= self._quad_outward[:, None]
+        acc = np.zeros((self.n_nodes, 3))
+        for k in range(4):
+            np.add.at(acc, self.quads[:, k], normal)
+        n = acc[nodes]
+        length = np.linalg.norm(n, axis=1)
+        ok = length > 0
+        return ok, n[ok] / length[ok, None]
+
+    def _slides(self) -> bool:
+        """Whether the skin is held to its tangent planes in the untangling (sliding in them,
+        or leaving them outwards only)."""
+        slide = self.options.slide_skin is not False
+        return slide and len(self.sliding) > 0 and len(self.quads) > 0
+
+    def skin_outward_planes(
+        self, x: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """The skin's one-sided planes for the untangling of the pose ``x``
+        (``RelaxOptions.skin_outward``): each sliding node kept on the outer side of its
+        tangent plane at ``x`` (global ``nodes, normals, offsets``); none when the skin is not
+        held or the option is off."""
+        if not (self._slides() and self.options.skin_outward):
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+        ok, normals = self._skin_normals(x, self.sliding)
+        nodes = self.sliding[ok]
+        return nodes, normals, np.einsum("ij,ij->i", normals, x[nodes])
+
     def _sliding_rows(
         self, x: NDArray[np.float64], sub: FoldoverEnergy
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Rows of ``sub.free`` that slide, and their unit surface normals at ``x`` (area-weighted
-        over the quads around each node)."""
-        if self.options.slide_skin is False or len(self.sliding) == 0 or len(self.quads) == 0:
+        over the quads around each node); none when the skin leaves its planes outwards
+        instead (``RelaxOptions.skin_outward``)."""
+        if not self._slides() or self.options.skin_outward:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
         free_global = sub.nodes[sub.free]
         rows = np.flatnonzero(np.isin(free_global, self.sliding))
         if len(rows) == 0:
             return rows, np.zeros((0, 3))
-        p = x[self.quads]
-        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])  # twice the area, outward
-        acc = np.zeros((self.n_nodes, 3))
-        for k in range(4):
-            np.add.at(acc, self.quads[:, k], normal)
-        n = acc[free_global[rows]]
-        length = np.linalg.norm(n, axis=1)
-        ok = length > 0
-        return rows[ok], n[ok] / length[ok, None]
+        ok, normals = self._skin_normals(x, free_global[rows])
+        return rows[ok], normals
 
     def optimise(
         self,

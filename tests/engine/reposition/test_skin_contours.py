@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from kneegui.meshopt.foldover import RelaxOptions
 from kneegui.reposition.skin_contours import (
     ContourOrder,
     SkinContours,
@@ -81,13 +84,22 @@ def test_a_node_beyond_its_neighbour_at_rest_is_left_alone():
     assert 8 * 2 + 1 not in set(nodes)
 
 
-def test_the_untangling_puts_the_skin_contours_back_in_order(small_repositioner):
+@pytest.mark.parametrize(("outward", "bound"), [(False, 1.5), (True, 6.0)])
+def test_the_untangling_puts_the_skin_contours_back_in_order(
+    small_repositioner, small_posed, outward, bound
+):
     """The mapping crosses the contours behind a flexed knee (12 mm at 90 deg on the coarse
     demo). The untangling energy holds them in order as it untangles, so its shape terms, not
     the quality optimiser's penalties, carry the skin back: before, it handed over contours
     still 7 mm crossed and the optimiser pressed the elements between them flat (tet
-    collapse 0.014 against 0.108 on the tetrahedral demo; 0.107 now)."""
+    collapse 0.014 against 0.108 on the tetrahedral demo; 0.107 now). With the skin sliding in
+    its tangent planes it hands over 1.2 mm; free to bulge outwards (``skin_outward``, the
+    default), 3.2 mm, which the quality stage takes to 0.02 mm (the tet demo's collapse at 90
+    deg the same, 0.109)."""
     rep = small_repositioner
+    if not outward:
+        relax = replace(rep.options.improvement.relax or RelaxOptions(), skin_outward=False)
+        rep = rep.with_options(improvement=replace(rep.options.improvement, relax=relax))
     pose = rep.pose_detailed(90.0, remeasure=False, relax=False)
     relaxation = rep._elastic_relaxation()
     order = relaxation.contour_order
@@ -97,9 +109,11 @@ def test_the_untangling_puts_the_skin_contours_back_in_order(small_repositioner)
         nodes, normals, offsets = order.constraints(x)
         return float(-(np.einsum("ij,ij->i", normals, x[nodes]) - offsets).min())
 
-    assert deepest(pose.coords) > 5.0
+    assert deepest(pose.coords) > 10.0
     untangled, report, ok = relaxation.untangle(
         pose.coords, pose.bone_pose.transforms, True, lambda f, m: None, lambda: False
     )
     assert ok and report.inverted_corners_after == 0
-    assert deepest(untangled) < 1.5
+    assert deepest(untangled) < bound
+    if outward:  # what the export writes: in order
+        assert deepest(small_posed(90.0).coords) < 0.2
