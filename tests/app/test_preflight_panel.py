@@ -91,8 +91,9 @@ def test_the_sliding_demo_has_nothing_locked(demo_window, qtbot):
 
 
 def test_an_export_that_fails_the_gate_says_so_in_the_banner(welded_window, qtbot, tmp_path):
-    """The welded joint at 70 deg: the export leaves locked and movable elements inverted
-    (16 and 4; at 60 deg only locked ones since the skin may bulge outwards, 7 December).
+    """The welded joint at 90 deg: the export leaves locked and movable elements inverted
+    (21 and 13; at 60 deg only locked ones since the skin may bulge outwards, at 70 deg 16 and
+    4, 7 December).
     The banner says the export fails the gate, splits the inverted elements as the report does,
     names the reasons in its tooltip, and File > Export refuses it unless forced."""
     from app.panels import INDICATOR_STYLES
@@ -101,15 +102,15 @@ def test_an_export_that_fails_the_gate_says_so_in_the_banner(welded_window, qtbo
     win = welded_window
     ws, indicator = win.ws, win.indicator
     win.set_rest_export(True)
-    win.flexion_panel.slider.setValue(700)
-    qtbot.waitUntil(lambda: ws.view_kind == "as exported" and ws.flexion == 70.0, timeout=120000)
+    win.flexion_panel.slider.setValue(900)
+    qtbot.waitUntil(lambda: ws.view_kind == "as exported" and ws.flexion == 90.0, timeout=120000)
     wait_idle(qtbot, ws)
     report = ws.exported.posed.report
     inverted = report["inverted"]
     assert not report["gate"]["passed"] and inverted["locked"] > 0 and inverted["movable"] > 0
     text = indicator.text()
     expected = (
-        f"AS EXPORTED · FAILS THE GATE · 70.0° · inverted {inverted['total']} "
+        f"AS EXPORTED · FAILS THE GATE · 90.0° · inverted {inverted['total']} "
         f"({inverted['locked']} locked, {inverted['movable']} movable)"
     )
     assert text.startswith(expected), text
@@ -136,9 +137,9 @@ def test_an_export_that_fails_the_gate_says_so_in_the_banner(welded_window, qtbo
     curve = win.quality_curve_panel
     worst = ws.exported.figures.worst_jacobian
     marks = {angle: rest for angle, *rest in curve.exported_marks("worst_jacobian")}
-    y, failed, off = marks[70.0]
+    y, failed, off = marks[90.0]
     assert failed and off == (worst < -1.0) and y == max(worst, -1.0)
-    assert not any(m[1] for a, m in marks.items() if a != 70.0)  # the others pass
+    assert not any(m[1] for a, m in marks.items() if a != 90.0)  # the others pass
     with pytest.raises(ExportBlocked, match="fails the quality gate"):
         ws.export(tmp_path / "posed.k")
     assert not (tmp_path / "posed.k").exists()

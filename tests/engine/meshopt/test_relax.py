@@ -463,19 +463,20 @@ def test_midside_nodes_inside_a_bone_go_back_to_its_surface(box_surface):
     assert turn.inverse().apply(out[9:10])[0, 0] == pytest.approx(0.0, abs=1e-12)
 
 
-def _skin_pushed_out(flip_quads: bool = False, **options):
-    """The 4 x 4 x 4 block, its top face's inner nodes skin, an interior node under it held
-    2 above the skin; relaxed with ``options``. Returns the block's node function, the pose,
-    the relaxed coordinates, the report and the blocks."""
+def _skin_block_relaxed(lift: float, flip_quads: bool = False, **options):
+    """The 4 x 4 x 4 block, its top face's inner nodes skin, the interior node under the
+    middle one held ``lift`` above where it was (2 above the skin, or below the next layer);
+    relaxed with ``options``. Returns the block's node function, the skin nodes, the pose, the
+    relaxed coordinates, the report and the blocks."""
     coords, blocks, boundary, node = hex_block(4)
     n = 4
     top = np.flatnonzero(np.isclose(coords[:, 2], n * 10.0))
     side = np.flatnonzero(((coords[:, :2] == 0) | (coords[:, :2] == n * 10.0)).any(axis=1))
     sliding = np.setdiff1d(top, side)
-    pushed = node(2, 2, 3)
-    free = np.setdiff1d(np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding), pushed)
+    held = node(2, 2, 3)
+    free = np.setdiff1d(np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding), held)
     moved = coords.copy()
-    moved[pushed, 2] = n * 10.0 + 2.0
+    moved[held, 2] += lift
     quads = blocks["quad4"].conn
     solids = {"hex8": np.ones(len(blocks["hex8"].ids), bool)}
     relax = ElasticRelaxation(
@@ -487,14 +488,20 @@ def _skin_pushed_out(flip_quads: bool = False, **options):
         sliding=sliding,
     )
     relaxed, report = relax.relax(moved)
-    return node, moved, relaxed, report, blocks
+    return node, sliding, moved, relaxed, report, blocks
+
+
+#: the held node 2 above the skin (z = 40)
+PUSHED_OUT = 12.0
 
 
 def test_skin_pressed_from_inside_moves_out_without_a_restart():
     """With the skin allowed out of its tangent planes (``skin_outward``, the default), the
     tissue pushed out through it takes the skin node with it in the first attempt: no restart,
     nothing inverted, the skin node above where the pose had it."""
-    node, moved, relaxed, report, blocks = _skin_pushed_out(max_rounds=5, restarts=1)
+    node, _, moved, relaxed, report, blocks = _skin_block_relaxed(
+        PUSHED_OUT, max_rounds=5, restarts=1
+    )
     assert report.restarts == 0 and report.sliding_released == 0
     assert report.inverted_corners_after == 0
     assert compute_quality(relaxed, blocks).n_inverted == 0
@@ -505,43 +512,33 @@ def test_the_skins_outward_side_does_not_depend_on_how_its_shells_are_numbered()
     """A deck's shells need not face out: the same skin with its quads numbered the other way
     round relaxes to the same coordinates (the outward side is taken from the solids under
     the shells, not from their node order)."""
-    kept = _skin_pushed_out(max_rounds=5, restarts=1)
-    flipped = _skin_pushed_out(flip_quads=True, max_rounds=5, restarts=1)
-    assert flipped[3].restarts == 0
-    np.testing.assert_allclose(flipped[2], kept[2], atol=1e-6)
+    kept = _skin_block_relaxed(PUSHED_OUT, max_rounds=5, restarts=1)
+    flipped = _skin_block_relaxed(PUSHED_OUT, flip_quads=True, max_rounds=5, restarts=1)
+    assert flipped[4].restarts == 0
+    np.testing.assert_allclose(flipped[3], kept[3], atol=1e-6)
 
 
 def test_skin_pulled_from_inside_stays_out_of_its_tangent_planes():
     """Tissue pulled down from under the skin: the skin may not follow it in, neither when it
     slides nor when it may move outwards (the fold the energy would pull into a crease)."""
-    coords, blocks, boundary, node = hex_block(4)
-    n = 4
-    top = np.flatnonzero(np.isclose(coords[:, 2], n * 10.0))
-    side = np.flatnonzero(((coords[:, :2] == 0) | (coords[:, :2] == n * 10.0)).any(axis=1))
-    sliding = np.setdiff1d(top, side)
-    pulled = node(2, 2, 3)
-    free = np.setdiff1d(np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding), pulled)
-    moved = coords.copy()
-    moved[pulled, 2] -= 12.0  # below the next layer: its corners inverted
-    solids = {"hex8": np.ones(len(blocks["hex8"].ids), bool)}
     outcomes = {}
     for outward in (True, False):
-        relaxed, report = ElasticRelaxation(
-            coords,
-            corner_tetrahedra(blocks, solids),
-            free,
-            options=RelaxOptions(skin_outward=outward, restarts=0),
-            quads=blocks["quad4"].conn,
-            sliding=sliding,
-        ).relax(moved)
+        # below the next layer: its corners inverted
+        node, sliding, moved, relaxed, report, _ = _skin_block_relaxed(
+            -12.0, skin_outward=outward, restarts=0
+        )
         assert report.inverted_corners_after == 0
         outcomes[outward] = relaxed
+    coords, blocks, boundary, _ = hex_block(4)
+    free = np.setdiff1d(
+        np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding), node(2, 2, 3)
+    )
     free_skin = relaxation(coords, blocks, free, restarts=0).relax(moved)[0]
     # free, the skin over the pulled node follows it in by millimetres (3.2 measured)
-    assert free_skin[node(2, 2, 4), 2] < n * 10.0 - 1.0
+    assert free_skin[node(2, 2, 4), 2] < 40.0 - 1.0
     # held, it stays in its plane, or above it to the penalty's give (0.07 measured)
-    assert outcomes[False][sliding, 2].min() > n * 10.0 - 1e-9
-    assert outcomes[True][sliding, 2].min() > n * 10.0 - 0.3
+    assert outcomes[False][sliding, 2].min() > 40.0 - 1e-9
+    assert outcomes[True][sliding, 2].min() > 40.0 - 0.3
 
 
 def test_a_restart_lets_stuck_skin_nodes_off_their_tangent_planes():
@@ -549,25 +546,10 @@ def test_a_restart_lets_stuck_skin_nodes_off_their_tangent_planes():
     only be undone by the skin moving out of its tangent plane: where the skin only slides
     (``skin_outward=False``), the skin node that sliding keeps in that plane is freed by the
     first restart, and nothing stays inverted."""
-    coords, blocks, boundary, node = hex_block(4)
-    n = 4
-    top = np.flatnonzero(np.isclose(coords[:, 2], n * 10.0))
-    side = np.flatnonzero(((coords[:, :2] == 0) | (coords[:, :2] == n * 10.0)).any(axis=1))
-    sliding = np.setdiff1d(top, side)
-    pushed = node(2, 2, 3)
-    free = np.setdiff1d(np.union1d(np.setdiff1d(np.arange(len(coords)), boundary), sliding), pushed)
-    moved = coords.copy()
-    moved[pushed, 2] = n * 10.0 + 2.0  # 2 above the skin, and held there
-    solids = {"hex8": np.ones(len(blocks["hex8"].ids), bool)}
-    relax = ElasticRelaxation(
-        coords,
-        corner_tetrahedra(blocks, solids),
-        free,
-        options=RelaxOptions(max_rounds=5, restarts=1, skin_outward=False),
-        quads=blocks["quad4"].conn,
-        sliding=sliding,
+    node, _, moved, relaxed, report, blocks = _skin_block_relaxed(
+        PUSHED_OUT, max_rounds=5, restarts=1, skin_outward=False
     )
-    relaxed, report = relax.relax(moved)
+    pushed = node(2, 2, 3)
     assert report.restarts == 1 and report.sliding_released >= 1
     assert report.inverted_corners_after == 0
     assert compute_quality(relaxed, blocks).n_inverted == 0
