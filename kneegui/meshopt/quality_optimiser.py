@@ -1441,9 +1441,18 @@ def optimise_quality(
         if constraints is not None:
             fresh = with_partners(constraints(x_all))
 
+    is_free = np.zeros(len(x_all), dtype=bool)
+    is_free[free_nodes] = True
+
     def gaps() -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """The constrained nodes and how far each is on the right side of its plane."""
-        return constraint_gaps(fresh, x_all)
+        """The constrained nodes this stage moves and how far each is on the right side of its
+        plane. A node it holds (of an element the untangling left inverted, or beyond the
+        region) stays where its plane finds it whatever the rounds do, so it neither seeds a
+        round nor keeps the settling going (the 177k demo at 90 deg ran the round over the
+        whole stage, 64,315 nodes and 5.4 s, for contour nodes it held past their planes)."""
+        nodes, gap = constraint_gaps(fresh, x_all)
+        movable = is_free[nodes]
+        return nodes[movable], gap[movable]
 
     def narrowed(current: _Stage, settling: bool = False) -> _Stage:
         """The stage over the nodes still around a shortfall or a violated constraint (the
