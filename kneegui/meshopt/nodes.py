@@ -31,13 +31,20 @@ def boundary_node_mask(
 
 
 def boundary_node_normals(
-    coords: NDArray[np.float64], quads: NDArray[np.int64], tris: NDArray[np.int64]
+    coords: NDArray[np.float64],
+    quads: NDArray[np.int64],
+    tris: NDArray[np.int64],
+    quad_signs: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
-    """Unit area-weighted normals of the boundary faces at every node (zero off the boundary)."""
+    """Unit area-weighted normals of the boundary faces at every node (zero off the boundary).
+    ``quad_signs`` (Q,) of +-1 turns each quad's normal to a chosen side (a deck's shells need
+    not be oriented alike)."""
     normals = np.zeros_like(coords)
     if len(quads):
         p = coords[quads]
         n = 0.5 * np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+        if quad_signs is not None:
+            n *= quad_signs[:, None]
         for k in range(4):
             np.add.at(normals, quads[:, k], n)
     if len(tris):

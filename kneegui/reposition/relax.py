@@ -51,6 +51,7 @@ from kneegui.meshopt.foldover import (
     penalised_objective,
 )
 from kneegui.meshopt.lbfgs import minimize_lbfgs, round_monitor
+from kneegui.meshopt.nodes import boundary_node_normals
 from kneegui.meshopt.quality_optimiser import (
     REGION_CHUNK,
     SOLID_CORNER_TYPES,
@@ -1538,16 +1539,10 @@ class ElasticRelaxation:
     ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         """Unit outward surface normals at ``x`` of ``nodes`` (area-weighted over the quads
         around each, :meth:`_outward_quad_signs`); which have one, and those normals."""
-        p = x[self.quads]
-        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])  # twice the area
-        normal *= self._quad_outward[:, None]
-        acc = np.zeros((self.n_nodes, 3))
-        for k in range(4):
-            np.add.at(acc, self.quads[:, k], normal)
-        n = acc[nodes]
-        length = np.linalg.norm(n, axis=1)
-        ok = length > 0
-        return ok, n[ok] / length[ok, None]
+        no_tris = np.zeros((0, 3), dtype=np.int64)
+        n = boundary_node_normals(x, self.quads, no_tris, self._quad_outward)[nodes]
+        ok = np.any(n != 0.0, axis=1)
+        return ok, n[ok]
 
     def _slides(self) -> bool:
         """Whether the skin is held to its tangent planes in the untangling (sliding in them,
