@@ -75,6 +75,19 @@ class RelaxOptions:
     ----------
     volume_weight : float
         ``theta``: weight of the volume term against the shape term (0..1).
+    healthy_volume_weight : float
+    healthy_det : (float, float)
+        Opt-in (0, the default: every corner weighs volume by ``volume_weight``). A corner
+        whose ``det J`` is above ``healthy_det[1]`` when a round starts weighs volume by
+        ``healthy_volume_weight`` in that round, one below ``healthy_det[0]`` by
+        ``volume_weight``, one between by a weight linear in its ``det J`` (a ramp, not a
+        step: a ``det J`` a rounding apart must not change a corner's class). At ``theta`` =
+        0.5 the energy is a compressible material whose rounds trade volume for shape; the
+        healthy tissue stiff in volume keeps it while the crushed and inverted corners stay
+        soft enough to come free. Not the default: at 0.95 it left the 1M demo at 90 deg with
+        18 elements inverted instead of 30 and a p95 volume change of 57.6 % instead of 64.5 %,
+        but the 1.7M-node demo with 52 instead of 32 and 45 soft-tissue nodes up to 1.16 mm
+        in a bone instead of 1 (docs/repositioning.md, relaxation).
     uniform_weights : bool
         Every corner counts the same (the mesh quality view: a small element matters as much as
         a large one); otherwise corners are weighted by their initial volume (the elastic view).
@@ -169,6 +182,8 @@ class RelaxOptions:
     """
 
     volume_weight: float = 0.5
+    healthy_volume_weight: float = 0.0
+    healthy_det: tuple[float, float] = (0.25, 0.75)
     uniform_weights: bool = True
     shell_weight: float = 1.0
     seed_volume_ratio: float = 0.3
@@ -196,9 +211,10 @@ class RelaxOptions:
     skin_outward: bool = True
 
     def __post_init__(self) -> None:
-        if not 0 <= self.volume_weight <= 1:
+        if not 0 <= self.volume_weight <= 1 or not 0 <= self.healthy_volume_weight <= 1:
             raise ValueError(
-                f"RelaxOptions.volume_weight must be in [0, 1], not {self.volume_weight}"
+                "RelaxOptions.volume_weight and healthy_volume_weight must be in [0, 1], not"
+                f" {self.volume_weight} and {self.healthy_volume_weight}"
             )
         if (
             self.max_rounds < 1
@@ -211,6 +227,11 @@ class RelaxOptions:
             raise ValueError(
                 "RelaxOptions needs max_rounds >= 1, iterations_per_round >= 1, restarts >= 0,"
                 " restart_rings >= 0, focus_rings >= 0 and stall_rounds >= 1"
+            )
+        if not 0 <= self.healthy_det[0] < self.healthy_det[1]:
+            raise ValueError(
+                "RelaxOptions.healthy_det must be two det J 0 <= low < high, not"
+                f" {self.healthy_det}"
             )
         if not 0 < self.eps_decrease < 1:
             raise ValueError(
@@ -321,6 +342,9 @@ def quad_barrier(
         ratios.append(r)
     return total, grad, np.concatenate(ratios)
 
+
+#: ``corner_theta`` of an energy whose corners all weigh volume by its ``theta``.
+_EVERY_CORNER_THETA = np.zeros(0)
 
 #: Corners whose preconditioner terms :class:`FoldoverEnergy` works out at a time.
 _DIAGONAL_BLOCK = 1 << 16
@@ -467,17 +491,34 @@ class FoldoverEnergy:
         """Local real coordinates (m, 3) followed by the virtual nodes' coordinates."""
         return x if self.virtual is None else np.vstack([x, self.virtual @ x])
 
-    def energy(self, x: NDArray[np.float64], eps: float) -> tuple[float, NDArray, NDArray]:
-        """Energy, gradient (m, 3) and per-corner det J at local coordinates ``x`` (m, 3)."""
+    def energy(
+        self,
+        x: NDArray[np.float64],
+        eps: float,
+        corner_theta: NDArray[np.float64] | None = None,
+    ) -> tuple[float, NDArray, NDArray]:
+        """Energy, gradient (m, 3) and per-corner det J at local coordinates ``x`` (m, 3);
+        ``corner_theta`` (one per corner) replaces the volume weight ``theta`` corner by
+        corner."""
         xa = np.ascontiguousarray(self.augment(x))
         grad = np.empty_like(xa)
         det = np.empty(len(self.tets))
+        own = self._corner_theta(corner_theta)
         if len(self.tets) < PARALLEL_MIN_ELEMENTS:
             energy = foldover_free_energy(
-                xa, self.tets, self.inv_rest, self.weights, self.rows, self.theta, eps, grad, det
+                xa,
+                self.tets,
+                self.inv_rest,
+                self.weights,
+                self.rows,
+                self.theta,
+                eps,
+                grad,
+                det,
+                own,
             )
         else:
-            energy = self._energy_in_parts(xa, eps, grad, det)
+            energy = self._energy_in_parts(xa, eps, grad, det, own)
         if self.virtual_t is not None:
             grad = grad[: self.m] + self.virtual_t @ grad[self.m :]
         if len(self.quads) == 0:
@@ -488,7 +529,17 @@ class FoldoverEnergy:
         )
         return float(energy), grad, np.concatenate([det, ratios])
 
-    def _energy_in_parts(self, xa, eps, grad, det) -> float:
+    def _corner_theta(self, corner_theta: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        """``corner_theta`` as the kernel takes it (empty: ``theta`` everywhere), checked."""
+        if corner_theta is None:
+            return _EVERY_CORNER_THETA
+        if len(corner_theta) != len(self.tets):
+            raise ValueError(
+                f"corner_theta has {len(corner_theta)} values for {len(self.tets)} corners"
+            )
+        return np.ascontiguousarray(corner_theta, dtype=np.float64)
+
+    def _energy_in_parts(self, xa, eps, grad, det, corner_theta) -> float:
         """The compiled energy over fixed parts of the corners, each into its own gradient
         buffer, added in order (:mod:`kneegui.meshopt.parallel`)."""
         if self._buffers is None or self._buffers.shape[1:] != xa.shape:
@@ -507,6 +558,7 @@ class FoldoverEnergy:
                 self._buffers,
                 det,
                 totals,
+                corner_theta,
             )
         np.sum(self._buffers, axis=0, out=grad)
         return add_in_order(totals)
@@ -518,13 +570,19 @@ class FoldoverEnergy:
         grad = grad + self.quad_scatter @ g_q.reshape(-1, 3)
         return energy + e_q, grad, np.concatenate([det, r_q])
 
-    def energy_numpy(self, x: NDArray[np.float64], eps: float) -> tuple[float, NDArray, NDArray]:
+    def energy_numpy(
+        self,
+        x: NDArray[np.float64],
+        eps: float,
+        corner_theta: NDArray[np.float64] | None = None,
+    ) -> tuple[float, NDArray, NDArray]:
         """:meth:`energy` in NumPy (the reference the compiled kernel is tested against).
 
         Laid out as (component, corner) arrays so that every step is an elementwise operation
         on long vectors.
         """
-        theta, g, t = self.theta, self.g, self.tets
+        theta = self.theta if corner_theta is None else self._corner_theta(corner_theta)
+        g, t = self.g, self.tets
         xt = self.augment(x).T
         base = xt[:, t[:, 0]]
         edges = np.stack([xt[:, t[:, k]] - base for k in (1, 2, 3)])  # (3 edges, 3 coords, C)
@@ -567,6 +625,7 @@ def penalised_objective(
     planes: tuple[NDArray, NDArray, NDArray, NDArray],
     force_depth: float,
     sliding: tuple[NDArray[np.int64], NDArray[np.float64]],
+    corner_theta: NDArray[np.float64] | None = None,
 ) -> Callable[[NDArray[np.float64]], tuple[float, NDArray]]:
     """The energy over the scaled free variables, with half-space penalties.
 
@@ -586,6 +645,9 @@ def penalised_objective(
     sliding : (rows of the free nodes, unit normals)
         Free nodes moving only in their tangent planes (the gradient's normal part is removed,
         so L-BFGS stays in those planes).
+    corner_theta : (C,) ndarray, optional
+        Each corner's volume weight instead of the energy's ``theta``
+        (:meth:`FoldoverEnergy.energy`).
     """
     work = start.copy()
     c_local, c_normals, c_offsets, c_k = planes
@@ -600,7 +662,7 @@ def penalised_objective(
     # order, so the same bits
     def fun(flat: NDArray[np.float64]) -> tuple[float, NDArray]:
         scatter_scaled(work, sub_free, np.ascontiguousarray(flat), scale)
-        value, grad, _ = energy.energy(work, eps)
+        value, grad, _ = energy.energy(work, eps, corner_theta)
         if len(c_local):
             gap = np.einsum("ij,ij->i", c_normals, work[c_local]) - c_offsets
             short = np.minimum(gap, 0.0)

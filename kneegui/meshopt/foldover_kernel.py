@@ -32,7 +32,7 @@ def _regularised(det, eps):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def foldover_free_energy(
-    xa, tets, g, w, rows, theta, eps, grad, det_out
+    xa, tets, g, w, rows, theta, eps, grad, det_out, corner_theta
 ):  # pragma: no cover - compiled
     """Energy of Garanzha et al. (2021) summed over corners; fills ``grad`` (S, 3) and
     ``det_out`` (C,).
@@ -40,9 +40,12 @@ def foldover_free_energy(
     ``xa`` (S, 3) coordinates, ``tets`` (C, 4) local node indices (corner first); corner ``c``'s
     inverse rest edge matrix (J = E @ G) is ``g[rows[c]]`` and its weight ``w[rows[c]]``: the
     rows of arrays shared with the whole relaxation, which a region's energy does not copy.
+    ``corner_theta`` (C,) gives each corner its own volume weight instead of ``theta`` (empty:
+    ``theta`` for every corner).
     """
     grad[:, :] = 0.0
     total = 0.0
+    own_theta = corner_theta.shape[0] > 0
     for c in range(tets.shape[0]):
         a0 = tets[c, 0]
         a1 = tets[c, 1]
@@ -109,6 +112,8 @@ def foldover_free_energy(
         shape = frob / chi23
         volume = (det * det + 1.0) / chi
         wc = w[r]
+        if own_theta:
+            theta = corner_theta[c]
         total += wc * ((1.0 - theta) * shape + theta * volume)
         d_cof = wc * (
             (1.0 - theta) * (-2.0 / 3.0) * shape * dchi / chi
@@ -151,7 +156,7 @@ def foldover_free_energy(
 
 @njit(cache=True, nogil=True, parallel=True)
 def foldover_energy_in_parts(
-    xa, tets, g, w, rows, theta, eps, cut, buffers, det, totals
+    xa, tets, g, w, rows, theta, eps, cut, buffers, det, totals, corner_theta
 ):  # pragma: no cover - compiled
     """:func:`foldover_free_energy` over the fixed parts ``cut`` (:mod:`kneegui.meshopt.parallel`)
     in parallel: part ``k`` fills ``buffers[k]`` (S, 3) with its gradient and ``totals[k]`` with
@@ -159,8 +164,9 @@ def foldover_energy_in_parts(
     for k in prange(len(cut) - 1):
         a = cut[k]
         b = cut[k + 1]
+        own = corner_theta[a:b] if corner_theta.shape[0] > 0 else corner_theta
         totals[k] = foldover_free_energy(
-            xa, tets[a:b], g, w, rows[a:b], theta, eps, buffers[k], det[a:b]
+            xa, tets[a:b], g, w, rows[a:b], theta, eps, buffers[k], det[a:b], own
         )
 
 

@@ -1310,7 +1310,14 @@ class ElasticRelaxation:
                     c_local = np.searchsorted(sub.nodes, c_global)
                     planes = (c_local, c_normals, c_offsets, stiffness * sub.diagonal[c_local])
                 fun = penalised_objective(
-                    sub, xl, scale, eps, planes, opt.contact_force_depth, sliding
+                    sub,
+                    xl,
+                    scale,
+                    eps,
+                    planes,
+                    opt.contact_force_depth,
+                    sliding,
+                    self._corner_volume_weights(sub, xl, eps, opt),
                 )
                 start = (xl[sub.free] / scale).ravel()
                 before = fun(start)[0]
@@ -1408,6 +1415,22 @@ class ElasticRelaxation:
         report.min_det_after = d_min
         report.inverted_corners_after = int(np.sum(det <= 0))
         return x, d_min, whole, det
+
+    @staticmethod
+    def _corner_volume_weights(
+        sub: FoldoverEnergy, xl: NDArray[np.float64], eps: float, opt: RelaxOptions
+    ) -> NDArray[np.float64] | None:
+        """Each corner's volume weight for a round starting at ``xl``: ``volume_weight`` up to
+        det J = ``healthy_det[0]``, ``healthy_volume_weight`` from ``healthy_det[1]``, linear
+        between (:class:`RelaxOptions`; continuous, so that a det J a rounding apart gives
+        weights a rounding apart, not another class); None when every corner weighs volume
+        the same."""
+        if opt.healthy_volume_weight == 0 or opt.healthy_volume_weight == opt.volume_weight:
+            return None
+        _, _, det = sub.energy(xl, eps)
+        low, high = opt.healthy_det
+        health = np.clip((det[: len(sub.tets)] - low) / (high - low), 0.0, 1.0)  # shells after
+        return opt.volume_weight + (opt.healthy_volume_weight - opt.volume_weight) * health
 
     def _reach(self, seed: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
         """Mask of the nodes within ``rings`` mesh edges of the ``seed`` nodes."""
