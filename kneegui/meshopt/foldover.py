@@ -505,18 +505,7 @@ class FoldoverEnergy:
         det = np.empty(len(self.tets))
         own = self._corner_theta(corner_theta)
         if len(self.tets) < PARALLEL_MIN_ELEMENTS:
-            energy = foldover_free_energy(
-                xa,
-                self.tets,
-                self.inv_rest,
-                self.weights,
-                self.rows,
-                self.theta,
-                eps,
-                grad,
-                det,
-                own,
-            )
+            energy = foldover_free_energy(xa, *self._corners, eps, grad, det, own)
         else:
             energy = self._energy_in_parts(xa, eps, grad, det, own)
         if self.virtual_t is not None:
@@ -528,6 +517,12 @@ class FoldoverEnergy:
             np.ascontiguousarray(x), self.quads, self.quad_rest, self.quad_weight, eps, grad, ratios
         )
         return float(energy), grad, np.concatenate([det, ratios])
+
+    @property
+    def _corners(self) -> tuple:
+        """The kernels' corner arguments: tets, inverse rest matrices, weights, their rows and
+        ``theta``."""
+        return self.tets, self.inv_rest, self.weights, self.rows, self.theta
 
     def _corner_theta(self, corner_theta: NDArray[np.float64] | None) -> NDArray[np.float64]:
         """``corner_theta`` as the kernel takes it (empty: ``theta`` everywhere), checked."""
@@ -547,18 +542,7 @@ class FoldoverEnergy:
         totals = np.empty(PARTS)
         with PARALLEL_KERNEL_LOCK:
             foldover_energy_in_parts(
-                xa,
-                self.tets,
-                self.inv_rest,
-                self.weights,
-                self.rows,
-                self.theta,
-                eps,
-                self._cut,
-                self._buffers,
-                det,
-                totals,
-                corner_theta,
+                xa, *self._corners, eps, self._cut, self._buffers, det, totals, corner_theta
             )
         np.sum(self._buffers, axis=0, out=grad)
         return add_in_order(totals)

@@ -123,36 +123,21 @@ def test_energy_in_parts_is_the_same_on_one_thread_and_matches_one_pass(block_mo
     assert len(sub.quads) == 0  # (the energy adds the shells' barrier after the parts)
     assert e_parts == e_many and np.array_equal(buffers.sum(axis=0), g_many)
     np.testing.assert_array_equal(d_parts, d_many)
-    g_serial, d_serial = np.empty_like(xa), np.empty(len(sub.tets))
-    e_serial = foldover_free_energy(
-        xa,
-        sub.tets,
-        sub.inv_rest,
-        sub.weights,
-        sub.rows,
-        sub.theta,
-        1e-3,
-        g_serial,
-        d_serial,
-        np.zeros(0),
-    )
+
+    def one_pass(theta):
+        """The compiled energy over every corner at once: energy, gradient, det J."""
+        grad, det = np.empty_like(xa), np.empty(len(sub.tets))
+        energy = foldover_free_energy(
+            xa, sub.tets, sub.inv_rest, sub.weights, sub.rows, sub.theta, 1e-3, grad, det, theta
+        )
+        return energy, grad, det
+
+    e_serial, _, d_serial = one_pass(np.zeros(0))
     assert e_many == pytest.approx(e_serial, rel=1e-12)
     np.testing.assert_array_equal(d_many[: len(d_serial)], d_serial)
     # each corner's own volume weight: its part's slice, the same as one pass
     theta = np.random.default_rng(5).uniform(0.2, 0.95, len(sub.tets))
     e_own, g_own, _ = sub.energy(x, 1e-3, theta)
-    g_one = np.empty_like(xa)
-    e_one_pass = foldover_free_energy(
-        xa,
-        sub.tets,
-        sub.inv_rest,
-        sub.weights,
-        sub.rows,
-        sub.theta,
-        1e-3,
-        g_one,
-        np.empty(len(sub.tets)),
-        theta,
-    )
+    e_one_pass, g_one, _ = one_pass(theta)
     assert e_own == pytest.approx(e_one_pass, rel=1e-12) and e_own != pytest.approx(e_many)
     np.testing.assert_allclose(g_own, g_one, rtol=1e-9, atol=1e-9 * np.abs(g_one).max())
